@@ -1,0 +1,7 @@
+"""DReSG engine: reference-guided stylization of 3D Gaussian Splatting scenes.
+
+Imports nothing heavy at package import time and never imports ``bpy``: the Blender operators in
+``operators/`` and the command line (``python -m dresg_addon``) are thin layers over this package.
+"""
+
+__version__ = "0.1.0"

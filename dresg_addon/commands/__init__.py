@@ -1,0 +1,1 @@
+"""Sub-commands of ``python -m dresg_addon``; see :mod:`dresg_addon.cli`."""

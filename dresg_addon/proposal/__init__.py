@@ -1,0 +1,34 @@
+"""Proposal backends: the attention-guided latent update of Sec. 4.1 behind one interface.
+
+``patch`` (default) needs no weights; ``sd15`` uses Stable Diffusion 1.5 from a local path and is
+imported only when chosen.
+"""
+
+from __future__ import annotations
+
+from .base import AttentionFeatures, EnergyTerms, ProposalBackend, attention_energy, optimize_proposal
+
+
+def make_backend(name: str, **kwargs) -> ProposalBackend:
+    """Build a backend by name; ``sd15`` needs ``model_path=`` and imports diffusers lazily."""
+    from ..errors import ConfigError
+
+    if name == "patch":
+        from .patch import PatchBackend
+
+        return PatchBackend(**kwargs)
+    if name == "sd15":
+        from .sd15 import SD15Backend
+
+        return SD15Backend(**kwargs)
+    raise ConfigError(f"unknown proposal backend {name!r} (choose 'patch' or 'sd15')")
+
+
+__all__ = [
+    "AttentionFeatures",
+    "EnergyTerms",
+    "ProposalBackend",
+    "attention_energy",
+    "make_backend",
+    "optimize_proposal",
+]
