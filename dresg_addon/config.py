@@ -1,0 +1,119 @@
+"""The method's settings as one typed dataclass with the paper's defaults; presets are instances.
+
+The CLI and the Blender panel are thin layers over :class:`StylizeConfig`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+
+from .errors import ConfigError
+
+SCHEDULES = ("snr", "fixed1", "fixed2", "triangle", "cosine")
+PROPOSALS = ("patch", "sd15")
+SH_REST_MODES = ("keep", "zero")
+
+
+@dataclass(frozen=True)
+class StylizeConfig:
+    # Schedule (Sec. 4.2, Algorithm 1): N = stages x updates DDIM states out of a 200-step schedule.
+    stages: int = 20
+    updates_per_stage: int = 10
+    ddim_steps: int = 200
+    schedule: str = "snr"  # residual-strength schedule: snr | fixed1 | fixed2 | triangle | cosine
+    logit_space: bool = True  # False: the image-space scaling ablation
+    # Proposal (Sec. 4.1)
+    proposal: str = "patch"  # patch | sd15
+    model_path: str = ""  # local SD1.5 folder or .safetensors (sd15 only)
+    proposal_width: int = 448
+    proposal_height: int = 320
+    content_weight: float = 0.15  # w_c
+    latent_lr: float = 0.05
+    use_content_query: bool = True  # ablation "w/o Q_c" when False
+    use_style_keys: bool = True  # ablation "w/o K_s"
+    use_style_values: bool = True  # ablation "w/o V_s"
+    feedback: bool = True  # ablation "w/o feedback": keep optimising the first latent
+    # Fitting (Sec. 4.3)
+    fit_steps: int = 30
+    post_steps: int = 50  # after covariance colour transfer
+    color_lr: float = 0.05
+    geometry_lr: float = 1e-3
+    optimize_geometry: bool = True
+    mean_bound: float = 0.05
+    log_scale_bound: float = 0.05
+    quat_bound: float = 0.02
+    pcgrad: bool = True  # ablation "w/o colour-gradient projection" when False
+    pcgrad_eps: float = 1e-12
+    lambda_ssim: float = 0.2
+    lambda_tv: float = 0.01
+    lambda_feature: float = 0.01
+    dino_path: str = ""  # local DINO weights for the feature loss; empty: patch features
+    render_scale: float = 1.0  # render resolution relative to the cameras' own
+    # View selection (Sec. 4.3)
+    max_views: int = 0  # 0: no cap
+    w_min: float = 1e-4
+    rho: float = 0.98
+    coverage_stop: float = 0.9999
+    gain_threshold: float = 0.001
+    # Scene handling
+    sh_rest: str = "zero"  # keep | zero: what happens to view-dependent SH bands of a stylized scene
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    near: float = 0.01
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.stages >= 1, "stages must be >= 1"),
+            (self.updates_per_stage >= 1, "updates_per_stage must be >= 1"),
+            (self.stages * self.updates_per_stage <= self.ddim_steps, "stages x updates_per_stage exceeds ddim_steps"),
+            (self.schedule in SCHEDULES, f"schedule must be one of {', '.join(SCHEDULES)}"),
+            (self.proposal in PROPOSALS, f"proposal must be one of {', '.join(PROPOSALS)}"),
+            (self.sh_rest in SH_REST_MODES, f"sh_rest must be one of {', '.join(SH_REST_MODES)}"),
+            (self.fit_steps >= 0 and self.post_steps >= 0, "fit_steps and post_steps must be >= 0"),
+            (self.proposal_width >= 8 and self.proposal_height >= 8, "proposal size must be at least 8x8"),
+            (self.render_scale > 0, "render_scale must be > 0"),
+            (0 < self.rho <= 1, "rho must be in (0, 1]"),
+            (self.near > 0, "near must be > 0"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ConfigError(f"invalid setting: {message}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> StylizeConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(f"unknown setting(s): {', '.join(unknown)}")
+        if "background" in values:
+            values = {**values, "background": tuple(values["background"])}
+        return cls(**values)
+
+    def with_(self, **changes) -> StylizeConfig:
+        return replace(self, **changes)
+
+
+PRESETS: dict[str, StylizeConfig] = {
+    # The paper's exact defaults: 20 stages x 10 updates, 30 fit steps, 448x320.
+    "paper": StylizeConfig(),
+    # A quick look: fewer stages and views, lower resolution.
+    "preview": StylizeConfig(
+        stages=5,
+        updates_per_stage=10,
+        fit_steps=15,
+        post_steps=20,
+        proposal_width=224,
+        proposal_height=160,
+        max_views=4,
+        render_scale=0.5,
+    ),
+}
+
+
+def preset(name: str, **overrides) -> StylizeConfig:
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r} (choose {', '.join(PRESETS)})")
+    return PRESETS[name].with_(**overrides)
