@@ -1,0 +1,15 @@
+"""Pure-torch differentiable Gaussian rasterizer (CPU by default, the same code on CUDA).
+
+Semantics (the definition, which :mod:`.reference` implements slowly in float64):
+
+- EWA projection: the Jacobian's x/z and y/z are clamped to 1.3 tan(fov/2); the 2D covariance gets
+  +0.3 on its diagonal; Gaussians with det <= 0, or with z <= ``near``, are skipped.
+- A Gaussian contributes at every pixel centre where alpha = min(0.99, o exp(-d^T S^-1 d / 2)) >= 1/255,
+  with no tile or radius truncation (those are speed knobs, off by default).
+- Front-to-back by depth; a sample with T (1 - alpha) < 1e-4 ends the pixel and is not added.
+"""
+
+from .rasterizer import ColorOnlyRenderer, RasterSettings, RenderOutput, render, render_scene
+from .sh import colors_from_sh
+
+__all__ = ["ColorOnlyRenderer", "RasterSettings", "RenderOutput", "colors_from_sh", "render", "render_scene"]
