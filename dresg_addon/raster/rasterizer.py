@@ -52,17 +52,17 @@ class RenderOutput:
 
 
 def _row_extents(means2d, cov2d, r2, height):
-    """Rows [y0, y1] whose pixel centres can lie inside power <= r2 (inclusive, clamped, 1 px margin)."""
+    """Rows [y0, y1] whose pixel centres can lie inside power <= r2 (inclusive, clamped)."""
     half = torch.sqrt(r2 * cov2d[:, 2])
-    y0 = torch.clamp(torch.ceil(means2d[:, 1] - half - 0.5) - 1, min=0)
-    y1 = torch.clamp(torch.floor(means2d[:, 1] + half - 0.5) + 1, max=height - 1)
+    y0 = torch.clamp(torch.ceil(means2d[:, 1] - half - 0.5), min=0)
+    y1 = torch.clamp(torch.floor(means2d[:, 1] + half - 0.5), max=height - 1)
     return y0.long(), y1.long()
 
 
 def _col_extents(means2d, cov2d, r2, width):
     half = torch.sqrt(r2 * cov2d[:, 0])
-    x0 = torch.clamp(torch.ceil(means2d[:, 0] - half - 0.5) - 1, min=0)
-    x1 = torch.clamp(torch.floor(means2d[:, 0] + half - 0.5) + 1, max=width - 1)
+    x0 = torch.clamp(torch.ceil(means2d[:, 0] - half - 0.5), min=0)
+    x1 = torch.clamp(torch.floor(means2d[:, 0] + half - 0.5), max=width - 1)
     return x0.long(), x1.long()
 
 
@@ -93,7 +93,7 @@ def _expand(counts):
 
 
 def _band_pairs(means2d, cov2d, conic, opac, r2, y0, y1, r0, r1, width, settings):
-    """(g, pixel) pairs of one band with alpha >= 1/255, sorted by (pixel, depth). No gradients.
+    """(g, pixel, o G) of the pairs of one band with alpha >= 1/255, sorted by (pixel, depth). No gradients.
 
     ``g`` indexes the band's Gaussians, which arrive sorted by depth, so g is also the depth rank.
     """
@@ -115,8 +115,8 @@ def _band_pairs(means2d, cov2d, conic, opac, r2, y0, y1, r0, r1, width, settings
         dy = row.to(torch.float64) + 0.5 - my
         disc = b * b * dy * dy - a * (c * dy * dy - r2[entry_g])
         root = torch.sqrt(torch.clamp_min(disc, 0.0))
-        xl = torch.clamp(torch.ceil(mx + (-b * dy - root) / a - 0.5) - 1, min=0).long()
-        xr = torch.clamp(torch.floor(mx + (-b * dy + root) / a - 0.5) + 1, max=width - 1).long()
+        xl = torch.clamp(torch.ceil(mx + (-b * dy - root) / a - 0.5), min=0).long()
+        xr = torch.clamp(torch.floor(mx + (-b * dy + root) / a - 0.5), max=width - 1).long()
         xr = torch.where(disc >= 0, xr, xl - 1)
     span = (xr - xl + 1).clamp_min(0)
     pair_entry, x_local = _expand(span)
@@ -129,17 +129,17 @@ def _band_pairs(means2d, cov2d, conic, opac, r2, y0, y1, r0, r1, width, settings
     dy = (y.to(dtype) + 0.5) - means2d[g, 1].to(dtype)
     cg = conic[g].to(dtype)
     power = cg[:, 0] * dx * dx + 2.0 * cg[:, 1] * dx * dy + cg[:, 2] * dy * dy
-    alpha = torch.clamp_max(opac[g].to(dtype) * torch.exp(-0.5 * power), ALPHA_MAX)
-    keep = alpha >= ALPHA_MIN
+    raw = opac[g].to(dtype) * torch.exp(-0.5 * power)  # o G before the 0.99 clamp
+    keep = raw >= ALPHA_MIN
     if settings.truncation_sigma > 0:
         keep &= power <= settings.truncation_sigma**2
-    g, pixel = g[keep], (y[keep] - r0) * width + x[keep]
+    g, pixel, raw = g[keep], (y[keep] - r0) * width + x[keep], raw[keep]
     n_g = means2d.shape[0]
     n_pix = (r1 - r0) * width
     key_dtype = torch.int32 if n_pix * max(n_g, 1) < 2**31 else torch.int64
     key = pixel.to(key_dtype) * n_g + g.to(key_dtype)
     order = torch.sort(key).indices
-    return g[order], pixel[order]
+    return g[order], pixel[order], raw[order]
 
 
 def _segments(pixel):
@@ -156,17 +156,13 @@ def _segments(pixel):
     return starts[seg], ends[seg]
 
 
-def _pair_alpha(means2d, conic, opac, g, pixel, r0, width, dtype):
-    """Per-pair alpha and the quantities its gradient needs (computed in ``dtype``)."""
+def _pixel_offsets(means2d, g, pixel, r0, width, dtype):
+    """(dx, dy) [P] from each pair's Gaussian centre to its pixel centre."""
     x = pixel % width
     y = pixel // width + r0
     dx = (x.to(dtype) + 0.5) - means2d[g, 0].to(dtype)
     dy = (y.to(dtype) + 0.5) - means2d[g, 1].to(dtype)
-    cg = conic[g].to(dtype)
-    power = cg[:, 0] * dx * dx + 2.0 * cg[:, 1] * dx * dy + cg[:, 2] * dy * dy
-    gauss = torch.exp(-0.5 * power)
-    raw = opac[g].to(dtype) * gauss
-    return torch.clamp_max(raw, ALPHA_MAX), raw < ALPHA_MAX, gauss, dx, dy
+    return dx, dy
 
 
 class _Composite(torch.autograd.Function):
@@ -178,9 +174,10 @@ class _Composite(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, means2d, conic, opac, colors, g, pixel, depth, meta):
+    def forward(ctx, means2d, conic, opac, colors, g, pixel, raw, depth, meta):
         r0, width, n_pix, background, dtype, cap = meta
-        alpha, unclamped, gauss, _, _ = _pair_alpha(means2d, conic, opac, g, pixel, r0, width, dtype)
+        alpha = torch.clamp_max(raw, ALPHA_MAX)
+        unclamped = raw < ALPHA_MAX
         log1m = torch.log1p(-alpha)
         start, end = _segments(pixel)
         excl = torch.cumsum(log1m, 0) - log1m
@@ -205,7 +202,7 @@ class _Composite(torch.autograd.Function):
             )
             pix_depth = torch.where(wsum > 0, dsum / torch.where(wsum > 0, wsum, 1.0), 0.0)
         ctx.save_for_backward(
-            means2d, conic, opac, colors, g, pixel, alpha, unclamped, gauss, t_before, weight, t_final, start, end
+            means2d, conic, opac, colors, g, pixel, alpha, unclamped, t_before, weight, t_final, start, end
         )
         ctx.meta = meta
         ctx.mark_non_differentiable(pix_depth, weight)
@@ -213,7 +210,7 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_rgb, grad_t, _grad_depth, _grad_weight):
-        means2d, conic, opac, colors, g, pixel, alpha, unclamped, gauss, t_before, weight, t_final, start, end = (
+        means2d, conic, opac, colors, g, pixel, alpha, unclamped, t_before, weight, t_final, start, end = (
             ctx.saved_tensors
         )
         r0, width, n_pix, background, dtype, _ = ctx.meta
@@ -234,9 +231,10 @@ class _Composite(torch.autograd.Function):
         d_alpha = torch.where(unclamped, d_alpha, torch.zeros((), dtype=dtype))
         n_g = means2d.shape[0]
         grad_colors = torch.zeros(n_g, 3, dtype=dtype, device=gr.device).index_add_(0, g, weight[:, None] * gr_pair)
-        grad_opac = torch.zeros(n_g, dtype=dtype, device=gr.device).index_add_(0, g, d_alpha * gauss)
-        # d alpha / d power = -alpha / 2 (unclamped); power = a dx^2 + 2 b dx dy + c dy^2, dx = px - mx.
-        _, _, _, dx, dy = _pair_alpha(means2d, conic, opac, g, pixel, r0, width, dtype)
+        # alpha = o G: d alpha / d o = alpha / o; d alpha / d power = -alpha / 2 (both where unclamped).
+        grad_opac = torch.zeros(n_g, dtype=dtype, device=gr.device).index_add_(0, g, d_alpha * alpha)
+        grad_opac = grad_opac / opac.to(dtype)
+        dx, dy = _pixel_offsets(means2d, g, pixel, r0, width, dtype)
         d_power = -0.5 * alpha * d_alpha
         cg = conic.to(dtype)[g]
         d_mean = torch.stack([-2.0 * (cg[:, 0] * dx + cg[:, 1] * dy), -2.0 * (cg[:, 1] * dx + cg[:, 2] * dy)], -1)
@@ -248,6 +246,7 @@ class _Composite(torch.autograd.Function):
             grad_conic.to(conic.dtype),
             grad_opac.to(opac.dtype),
             grad_colors.to(colors.dtype),
+            None,
             None,
             None,
             None,
@@ -320,13 +319,13 @@ def render(
         n_pix = (r1 - r0) * width
         with torch.no_grad():
             in_band = torch.nonzero((y0 < r1) & (y1 >= r0)).squeeze(-1)
-            g, pixel = _band_pairs(
+            g, pixel, raw = _band_pairs(
                 means2d.detach()[in_band], cov2d[in_band], conic.detach()[in_band], opac.detach()[in_band],
                 r2[in_band], y0[in_band], y1[in_band], r0, r1, width, settings,
             )  # fmt: skip
         meta = (r0, width, n_pix, tuple(settings.background), settings.dtype, cap)
         rgb_b, t_b, depth_b, weight = _Composite.apply(
-            means2d[in_band], conic[in_band], opac[in_band], cols[in_band], g, pixel, depth[in_band], meta
+            means2d[in_band], conic[in_band], opac[in_band], cols[in_band], g, pixel, raw, depth[in_band], meta
         )
         rgb_parts.append(rgb_b)
         t_parts.append(t_b)
