@@ -388,7 +388,7 @@ class ColorOnlyRenderer:
         pixel, gauss, weight = (
             out.contributions if out.contributions else (torch.zeros(0, dtype=torch.long),) * 2 + (torch.zeros(0),)
         )
-        coo = torch.sparse_coo_tensor(torch.stack([pixel, gauss]), weight, (n_pix, n)).coalesce()
+        coo = torch.sparse_coo_tensor(torch.stack([pixel, gauss]), weight, (n_pix, n), check_invariants=False).coalesce()
         self.matrix = coo.to_sparse_csr()
         self.matrix_t = coo.t().coalesce().to_sparse_csr()
         bg = torch.tensor(settings.background, dtype=torch.float32, device=means.device)

@@ -1,0 +1,116 @@
+"""Covariance (affine) colour transfer of renders toward the style: the final post colour stage.
+
+One affine map x' = A (x - mu_r) + mu_s is fitted to all renders jointly (so the views stay
+consistent with each other) and matches their RGB mean and covariance to the style's:
+A = Sigma_s^{1/2} Sigma_r^{-1/2}, with symmetric matrix square roots, gives A Sigma_r A^T = Sigma_s.
+Eigenvalues are floored before the inverse root, so flat or grey renders and flat styles stay finite.
+The same map applies to Gaussian colours (``ColorTransform.apply_to_colors``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .errors import CameraError, ImageError, NumericalError
+
+EIGEN_FLOOR = 1e-6  # variance floor (std 1e-3, a quarter of an 8-bit level) for the inverse root
+
+
+@dataclass(frozen=True)
+class ColorTransform:
+    """x' = matrix @ x + offset on RGB colours (float64)."""
+
+    matrix: torch.Tensor  # [3, 3]
+    offset: torch.Tensor  # [3]
+
+    def apply_to_colors(self, colors: torch.Tensor) -> torch.Tensor:  # [..., 3] -> [..., 3]
+        """The map on colours with RGB in the last axis (e.g. Gaussian base colours [N, 3]); not clamped."""
+        m = self.matrix.to(colors.dtype).to(colors.device)
+        return colors @ m.T + self.offset.to(colors.dtype).to(colors.device)
+
+    def apply_to_images(self, images: torch.Tensor) -> torch.Tensor:  # [..., 3, H, W] -> same; not clamped
+        """The map on images with RGB in axis -3."""
+        return self.apply_to_colors(images.movedim(-3, -1)).movedim(-1, -3)
+
+
+def symmetric_sqrt(cov: torch.Tensor, floor: float = 0.0, inverse: bool = False) -> torch.Tensor:  # [3, 3]
+    """Sigma^{1/2} (or Sigma^{-1/2}) = U diag(max(lambda, floor))^{+-1/2} U^T for symmetric Sigma = U diag(lambda) U^T."""
+    eigvals, eigvecs = torch.linalg.eigh((cov + cov.T) / 2.0)
+    eigvals = eigvals.clamp_min(floor)
+    roots = eigvals.rsqrt() if inverse else eigvals.sqrt()
+    return (eigvecs * roots) @ eigvecs.T
+
+
+def color_moments(pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # [M, 3] -> [3], [3, 3]
+    """Mean mu = E[x] and covariance Sigma = E[(x - mu)(x - mu)^T] of RGB pixels, in float64."""
+    x = pixels.to(torch.float64)
+    mean = x.mean(0)
+    centred = x - mean
+    return mean, centred.T @ centred / x.shape[0]
+
+
+def covariance_color_transform(
+    renders: torch.Tensor,  # [V, 3, H, W] or [3, H, W]
+    style: torch.Tensor,  # [3, Hs, Ws]
+    render_mask: torch.Tensor | None = None,  # [V, 1, H, W], [V, H, W] (or unbatched); bool or alpha
+    style_mask: torch.Tensor | None = None,  # [1, Hs, Ws] or [Hs, Ws]; bool or alpha
+    mask_threshold: float = 0.5,
+    eigen_floor: float = EIGEN_FLOOR,
+) -> ColorTransform:
+    """The affine map A x + b with A = Sigma_s^{1/2} Sigma_r^{-1/2}, b = mu_s - A mu_r.
+
+    Statistics are taken over the pixels of all renders together (and of the style), restricted to
+    mask > ``mask_threshold`` where a mask is given. Sigma_r's eigenvalues are floored at
+    ``eigen_floor`` before the inverse root; Sigma_s's at 0.
+    """
+    render_pixels = _masked_pixels(renders, render_mask, mask_threshold, "render")
+    style_pixels = _masked_pixels(style, style_mask, mask_threshold, "style")
+    mu_r, cov_r = color_moments(render_pixels)
+    mu_s, cov_s = color_moments(style_pixels)
+    matrix = symmetric_sqrt(cov_s) @ symmetric_sqrt(cov_r, floor=eigen_floor, inverse=True)
+    offset = mu_s - matrix @ mu_r
+    if not (torch.isfinite(matrix).all() and torch.isfinite(offset).all()):
+        raise NumericalError("the colour transfer produced non-finite values")
+    return ColorTransform(matrix, offset)
+
+
+def color_transfer(
+    renders: torch.Tensor,  # [V, 3, H, W] or [3, H, W]
+    style: torch.Tensor,  # [3, Hs, Ws]
+    render_mask: torch.Tensor | None = None,
+    style_mask: torch.Tensor | None = None,
+    mask_threshold: float = 0.5,
+    clamp: bool = True,
+) -> tuple[torch.Tensor, ColorTransform]:
+    """Renders recoloured by ``covariance_color_transform`` (all pixels, clamped to [0, 1] by default), and the map."""
+    transform = covariance_color_transform(renders, style, render_mask, style_mask, mask_threshold)
+    out = transform.apply_to_images(renders)
+    return (out.clamp(0.0, 1.0) if clamp else out), transform
+
+
+def _masked_pixels(images: torch.Tensor, mask: torch.Tensor | None, threshold: float, what: str) -> torch.Tensor:
+    """[M, 3] pixels of [..., 3, H, W] images where mask > threshold (all pixels without a mask)."""
+    if images.ndim not in (3, 4) or images.shape[-3] != 3:
+        raise ValueError(f"{what} images must be [3, H, W] or [V, 3, H, W], got shape {tuple(images.shape)}")
+    if not torch.isfinite(images).all():
+        raise NumericalError(f"the {what} image has non-finite values")
+    pixels = images.detach().movedim(-3, -1).reshape(-1, 3)
+    if mask is not None:
+        keep = mask.detach()
+        if keep.dtype != torch.bool:
+            keep = keep > threshold
+        expected = images.shape[:-3] + images.shape[-2:]
+        if keep.ndim == images.ndim:  # channel axis of size 1
+            keep = keep.squeeze(-3)
+        if keep.shape != expected:
+            raise ValueError(
+                f"{what} mask has shape {tuple(mask.shape)}, expected {tuple(expected)} (with or without a channel axis)"
+            )
+        pixels = pixels[keep.reshape(-1)]
+    if pixels.shape[0] == 0:
+        if what == "render":
+            raise CameraError("no render pixel is covered by the scene (empty mask); the cameras see nothing")
+        raise ImageError("the style image mask keeps no pixel")
+    return pixels

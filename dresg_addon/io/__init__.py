@@ -1,0 +1,169 @@
+"""Scene file I/O: graphdeco PLY, antimatter15 ``.splat`` and PlayCanvas compressed PLY.
+
+>>> scene = read_scene("point_cloud.ply")          # format from the content (and .splat extension)
+>>> write_scene(scene, "point_cloud.splat")         # format from the extension, written atomically
+
+Every problem with a file is a one-line :class:`~dresg_addon.errors.SceneFormatError` naming it.
+Splats with non-finite values are an error unless ``drop_invalid=True``, which drops them and
+reports how many (``read_scene_detailed(...).dropped``, or an :class:`InvalidSplatsWarning` from
+:func:`read_scene`).
+"""
+
+from __future__ import annotations
+
+import enum
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import SceneFormatError, with_path
+from ..fileutil import atomic_write_with
+from ..scene import GaussianScene
+from .compressed_ply import encode_compressed, is_compressed, read_compressed
+from .ply import encode_graphdeco, read_graphdeco
+from .ply_container import is_ply, parse_header
+from .splat import encode_splat, read_splat
+
+__all__ = [
+    "READABLE_EXTENSIONS",
+    "WRITABLE_EXTENSIONS",
+    "InvalidSplatsWarning",
+    "SceneFormat",
+    "SceneReadResult",
+    "output_format",
+    "read_scene",
+    "read_scene_detailed",
+    "write_scene",
+]
+
+
+# For file browsers: what read_scene opens (compressed PLY files end in .ply too).
+READABLE_EXTENSIONS = (".ply", ".splat")
+WRITABLE_EXTENSIONS = (".ply", ".compressed.ply", ".splat")
+
+
+class SceneFormat(enum.Enum):
+    GRAPHDECO_PLY = "graphdeco PLY"
+    SPLAT = "antimatter15 .splat"
+    COMPRESSED_PLY = "PlayCanvas compressed PLY"
+
+
+class InvalidSplatsWarning(UserWarning):
+    """Splats with non-finite values were dropped while reading (``drop_invalid=True``)."""
+
+
+@dataclass
+class SceneReadResult:
+    scene: GaussianScene
+    format: SceneFormat
+    dropped: int  # splats dropped for non-finite values (only with drop_invalid=True)
+    file_size: int  # bytes
+
+
+def read_scene(path: str | os.PathLike, drop_invalid: bool = False) -> GaussianScene:
+    """Read a scene file; see :func:`read_scene_detailed`. Dropping splats emits an InvalidSplatsWarning."""
+    result = read_scene_detailed(path, drop_invalid=drop_invalid)
+    if result.dropped:
+        message = with_path(path, f"dropped {result.dropped} splats with non-finite values (NaN or Inf)")
+        warnings.warn(message, InvalidSplatsWarning, stacklevel=2)
+    return result.scene
+
+
+def read_scene_detailed(path: str | os.PathLike, drop_invalid: bool = False) -> SceneReadResult:
+    """Read a scene file, detecting its format from the content (PLY) or the ``.splat`` extension.
+
+    Raises SceneFormatError for a missing, empty, truncated or malformed file, for zero splats, and
+    for non-finite values unless ``drop_invalid`` (then those splats are dropped and counted).
+    """
+    data = _read_bytes(path)
+    if not data:
+        raise SceneFormatError(with_path(path, "empty file"))
+    if is_ply(data):
+        header = parse_header(path, data)
+        if is_compressed(header):
+            fmt, scene = SceneFormat.COMPRESSED_PLY, read_compressed(path, data, header)
+        else:
+            fmt, scene = SceneFormat.GRAPHDECO_PLY, read_graphdeco(path, data, header)
+    elif Path(path).suffix.lower() == ".splat":
+        fmt, scene = SceneFormat.SPLAT, read_splat(path, data)
+    elif data[:2] == b"\x1f\x8b":
+        raise SceneFormatError(
+            with_path(path, "gzip data (e.g. Niantic .spz) is not supported; convert it to .ply first")
+        )
+    else:
+        raise SceneFormatError(
+            with_path(path, "unknown scene format: not a PLY file, and only files named .splat are read as .splat")
+        )
+
+    invalid = scene.invalid_mask()
+    dropped = int(invalid.sum())
+    if dropped:
+        if not drop_invalid:
+            raise SceneFormatError(
+                with_path(
+                    path,
+                    f"{dropped} of {len(scene)} splats have non-finite values (NaN or Inf); "
+                    "read with drop_invalid (--drop-invalid) to drop them",
+                )
+            )
+        if dropped == len(scene):
+            raise SceneFormatError(with_path(path, f"all {dropped} splats have non-finite values"))
+        scene = scene.subset(~invalid)
+    return SceneReadResult(scene, fmt, dropped, len(data))
+
+
+def _read_bytes(path) -> bytes:
+    try:
+        return Path(path).read_bytes()
+    except FileNotFoundError:
+        raise SceneFormatError(with_path(path, "file not found")) from None
+    except IsADirectoryError:
+        raise SceneFormatError(with_path(path, "is a directory, not a scene file")) from None
+    except OSError as error:
+        raise SceneFormatError(with_path(path, f"cannot read: {error.strerror or error}")) from None
+
+
+def output_format(path: str | os.PathLike) -> SceneFormat:
+    """The format ``write_scene`` uses for ``path``: .splat, .compressed.ply, else .ply (graphdeco)."""
+    name = Path(path).name.lower()
+    if name.endswith(".compressed.ply"):
+        return SceneFormat.COMPRESSED_PLY
+    if name.endswith(".ply"):
+        return SceneFormat.GRAPHDECO_PLY
+    if name.endswith(".splat"):
+        return SceneFormat.SPLAT
+    raise SceneFormatError(
+        with_path(path, f"unknown output extension {Path(path).suffix!r} (use .ply, .compressed.ply or .splat)")
+    )
+
+
+def write_scene(scene: GaussianScene, path: str | os.PathLike) -> SceneFormat:
+    """Write ``scene`` in the format given by the extension of ``path`` and return that format.
+
+    The bytes are built in memory first and land atomically (temporary file, then rename), so a
+    failed write leaves any previous file untouched. Scenes with non-finite values are refused.
+    """
+    fmt = output_format(path)
+    invalid = int(scene.invalid_mask().sum())
+    if invalid:
+        raise SceneFormatError(with_path(path, f"refusing to write {invalid} splats with non-finite values"))
+    if len(scene) == 0:
+        raise SceneFormatError(with_path(path, "refusing to write a scene with no splats"))
+    if fmt is SceneFormat.GRAPHDECO_PLY:
+        parts = encode_graphdeco(scene, path)
+    elif fmt is SceneFormat.SPLAT:
+        parts = encode_splat(scene)
+    else:
+        parts = encode_compressed(scene)
+    try:
+        atomic_write_with(path, lambda tmp: _write_parts(tmp, parts))
+    except OSError as error:
+        raise SceneFormatError(with_path(path, f"cannot write: {error.strerror or error}")) from None
+    return fmt
+
+
+def _write_parts(path: str, parts: list[bytes | memoryview]) -> None:
+    with open(path, "wb") as stream:
+        for part in parts:
+            stream.write(part)

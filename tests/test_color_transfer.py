@@ -1,0 +1,124 @@
+"""Covariance (affine) colour transfer of renders toward the style."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dresg_addon.color_transfer import color_moments, color_transfer, covariance_color_transform, symmetric_sqrt
+from dresg_addon.errors import CameraError, ImageError, NumericalError
+
+
+def _correlated_images(batch, h, w, mix, mean, seed):
+    """[batch, 3, h, w] float64 images with colour covariance mix mix^T around ``mean``."""
+    gen = torch.Generator().manual_seed(seed)
+    noise = torch.randn(batch, h, w, 3, generator=gen, dtype=torch.float64)
+    pixels = noise @ torch.tensor(mix, dtype=torch.float64).T + torch.tensor(mean, dtype=torch.float64)
+    return pixels.permute(0, 3, 1, 2).contiguous()
+
+
+def _moments(images, mask=None):
+    pixels = images.movedim(-3, -1).reshape(-1, 3)
+    if mask is not None:
+        pixels = pixels[mask.reshape(-1)]
+    return color_moments(pixels)
+
+
+RENDER_MIX = [[0.10, 0.02, 0.00], [0.03, 0.08, 0.01], [0.00, 0.02, 0.05]]
+STYLE_MIX = [[0.05, 0.00, 0.04], [0.00, 0.12, 0.00], [0.02, 0.03, 0.06]]
+
+
+def test_symmetric_sqrt():
+    a = torch.tensor([[2.0, 0.5, 0.1], [0.5, 1.0, 0.2], [0.1, 0.2, 0.5]], dtype=torch.float64)
+    root = symmetric_sqrt(a)
+    torch.testing.assert_close(root @ root, a)
+    torch.testing.assert_close(root, root.T)
+    inv = symmetric_sqrt(a, inverse=True)
+    torch.testing.assert_close(inv @ a @ inv, torch.eye(3, dtype=torch.float64))
+    # A singular matrix: the floor keeps the inverse root finite and bounded by floor^-1/2.
+    singular = torch.zeros(3, 3, dtype=torch.float64)
+    singular[0, 0] = 1.0
+    inv = symmetric_sqrt(singular, floor=1e-6, inverse=True)
+    torch.testing.assert_close(torch.diagonal(inv), torch.tensor([1.0, 1e3, 1e3], dtype=torch.float64))
+
+
+def test_renders_get_the_style_mean_and_covariance():
+    renders = _correlated_images(3, 20, 24, RENDER_MIX, [0.4, 0.5, 0.3], seed=0)
+    style = _correlated_images(1, 30, 17, STYLE_MIX, [0.6, 0.3, 0.5], seed=1)[0]
+    out, transform = color_transfer(renders, style, clamp=False)
+    mu_out, cov_out = _moments(out)
+    mu_s, cov_s = _moments(style)
+    torch.testing.assert_close(mu_out, mu_s, atol=1e-10, rtol=0)
+    torch.testing.assert_close(cov_out, cov_s, atol=1e-10, rtol=1e-8)
+    # One map for all views (views stay consistent), also usable on Gaussian colours [N, 3].
+    torch.testing.assert_close(out[2], transform.apply_to_images(renders[2]))
+    colors = renders[0].movedim(0, -1).reshape(-1, 3)
+    torch.testing.assert_close(transform.apply_to_colors(colors), out[0].movedim(0, -1).reshape(-1, 3))
+    clamped, _ = color_transfer(renders, style)
+    assert clamped.min() >= 0.0 and clamped.max() <= 1.0
+    assert torch.equal(clamped, out.clamp(0, 1))
+
+
+def test_identity_when_the_statistics_already_match():
+    renders = _correlated_images(2, 16, 16, RENDER_MIX, [0.5, 0.4, 0.6], seed=2)
+    style = renders.permute(1, 0, 2, 3).reshape(3, 32, 16)  # the same pixels, rearranged
+    out, transform = color_transfer(renders, style, clamp=False)
+    torch.testing.assert_close(transform.matrix, torch.eye(3, dtype=torch.float64), atol=1e-9, rtol=0)
+    torch.testing.assert_close(transform.offset, torch.zeros(3, dtype=torch.float64), atol=1e-9, rtol=0)
+    torch.testing.assert_close(out, renders, atol=1e-9, rtol=0)
+
+
+def test_flat_style_and_flat_render_stay_finite():
+    renders = _correlated_images(2, 10, 10, RENDER_MIX, [0.5, 0.5, 0.5], seed=3)
+    flat_style = torch.zeros(3, 8, 8) + torch.tensor([0.2, 0.7, 0.1]).view(3, 1, 1)
+    out, _ = color_transfer(renders, flat_style.double(), clamp=False)
+    # A flat style has zero covariance: every pixel becomes its colour.
+    torch.testing.assert_close(out, flat_style.double()[:, :1, :1].expand_as(out).contiguous(), atol=1e-9, rtol=0)
+    flat_render = torch.full((2, 3, 6, 6), 0.3)
+    style = _correlated_images(1, 12, 12, STYLE_MIX, [0.6, 0.3, 0.5], seed=4)[0].float()
+    out, transform = color_transfer(flat_render, style, clamp=False)
+    assert torch.isfinite(out).all() and torch.isfinite(transform.matrix).all()
+    torch.testing.assert_close(out, style.mean((1, 2)).view(1, 3, 1, 1).expand_as(out), atol=1e-5, rtol=0)
+    # A grey render (rank-1 colour covariance) keeps its mean match and stays finite.
+    grey = _correlated_images(1, 10, 10, RENDER_MIX, [0.5, 0.5, 0.5], seed=5)[:, :1].expand(2, 3, 10, 10)
+    out, _ = color_transfer(grey, style.double(), clamp=False)
+    assert torch.isfinite(out).all()
+    torch.testing.assert_close(_moments(out)[0], _moments(style.double())[0], atol=1e-8, rtol=0)
+
+
+def test_masks_restrict_the_statistics():
+    renders = _correlated_images(2, 12, 12, RENDER_MIX, [0.4, 0.5, 0.3], seed=6)
+    alpha = torch.zeros(2, 1, 12, 12, dtype=torch.float64)
+    alpha[:, :, 2:10, 3:11] = 0.9
+    renders = torch.where(alpha > 0.5, renders, torch.tensor(5.0, dtype=torch.float64))  # wild background
+    style = _correlated_images(1, 14, 14, STYLE_MIX, [0.6, 0.3, 0.5], seed=7)[0]
+    style_alpha = torch.ones(14, 14, dtype=torch.float64)
+    style_alpha[:3] = 0.0
+    style_wild = style.clone()
+    style_wild[:, :3] = -4.0
+    out, _ = color_transfer(renders, style_wild, render_mask=alpha, style_mask=style_alpha, clamp=False)
+    keep = (alpha > 0.5).squeeze(1)
+    mu_out, cov_out = _moments(out, keep)
+    mu_s, cov_s = _moments(style[:, 3:])
+    torch.testing.assert_close(mu_out, mu_s, atol=1e-10, rtol=0)
+    torch.testing.assert_close(cov_out, cov_s, atol=1e-10, rtol=1e-8)
+    # Boolean masks without a channel axis mean the same.
+    out_bool, _ = color_transfer(renders, style_wild, render_mask=keep, style_mask=style_alpha > 0.5, clamp=False)
+    torch.testing.assert_close(out_bool, out)
+
+
+def test_bad_inputs():
+    renders = torch.rand(2, 3, 4, 4)
+    style = torch.rand(3, 5, 5)
+    with pytest.raises(CameraError, match="no render pixel"):
+        covariance_color_transform(renders, style, render_mask=torch.zeros(2, 4, 4))
+    with pytest.raises(ImageError, match="style image mask keeps no pixel"):
+        covariance_color_transform(renders, style, style_mask=torch.zeros(5, 5))
+    with pytest.raises(ValueError, match="mask has shape"):
+        covariance_color_transform(renders, style, render_mask=torch.ones(2, 4, 5))
+    with pytest.raises(ValueError, match=r"\[3, H, W\] or \[V, 3, H, W\]"):
+        covariance_color_transform(torch.rand(2, 4, 4, 4), style)
+    bad = style.clone()
+    bad[0, 0, 0] = float("nan")
+    with pytest.raises(NumericalError):
+        covariance_color_transform(renders, bad)
