@@ -44,10 +44,10 @@ class EnergyTerms:
 def attention_energy(
     render: AttentionFeatures, style: AttentionFeatures, content: AttentionFeatures | None, terms: EnergyTerms
 ) -> torch.Tensor:
-    """Eq. 10, attention guidance energy: E = E_s + w_c E_c, summed over layers.
+    """Eq. 9, attention guidance energy: E = E_s + w_c E_c, summed over layers.
 
-    Eq. 8/9 (style): E_s = || O_r - Attn(Q_r, K_s, V_s) ||_1 with the target detached.
-    Eq. 7 (content): E_c = || Q_r - Q_c ||_1.
+    Eqs. 7-8 (style): E_s = || O_r - Attn(Q_r, K_s, V_s) ||_1 with the target detached.
+    Eq. 6 (content): E_c = || Q_r - Q_c ||_1.
     L1 norms are means over batch, heads, tokens and dims, as in the authors' release.
     """
     energy = render.q[0].new_zeros(())
@@ -113,5 +113,5 @@ def optimize_proposal(
             raise NumericalError(f"non-finite proposal gradient at timestep {timestep}")
         optimizer.step()
         state = state.detach()
-        energies.append(float(energy))
+        energies.append(float(energy.detach()))
     return state, energies
