@@ -16,6 +16,10 @@ COMMAND_MODULES = (
     "info",
     "convert",
     "render",
+    "evaluate",
+    "select_views",
+    "stylize",
+    "demo",
 )
 
 

@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass, fields, replace
 
 from .errors import ConfigError
 
-SCHEDULES = ("snr", "fixed1", "fixed2", "triangle", "cosine")
+SCHEDULES = ("snr-balanced", "fixed-1", "fixed-2", "triangle", "timestep-cosine")
 PROPOSALS = ("patch", "sd15")
 SH_REST_MODES = ("keep", "zero")
 
@@ -20,7 +20,7 @@ class StylizeConfig:
     stages: int = 20
     updates_per_stage: int = 10
     ddim_steps: int = 200
-    schedule: str = "snr"  # residual-strength schedule: snr | fixed1 | fixed2 | triangle | cosine
+    schedule: str = "snr-balanced"  # residual strength: snr-balanced | fixed-1 | fixed-2 | triangle | timestep-cosine
     logit_space: bool = True  # False: the image-space scaling ablation
     # Proposal (Sec. 4.1)
     proposal: str = "patch"  # patch | sd15
@@ -97,9 +97,12 @@ class StylizeConfig:
 
 
 PRESETS: dict[str, StylizeConfig] = {
-    # The paper's exact defaults: 20 stages x 10 updates, 30 fit steps, 448x320.
+    # The paper's exact defaults: 20 stages x 10 updates, 30 fit steps, 448x320, geometry offsets on.
     "paper": StylizeConfig(),
-    # A quick look: fewer stages and views, lower resolution.
+    # The paper's schedule with geometry frozen: fitting takes the colour-only fast path (a sparse
+    # multiply per view instead of a full re-render), which makes the paper's schedule practical on a CPU.
+    "cpu": StylizeConfig(optimize_geometry=False),
+    # A quick look: fewer stages, steps and views, lower resolution, colour only.
     "preview": StylizeConfig(
         stages=5,
         updates_per_stage=10,
@@ -109,6 +112,7 @@ PRESETS: dict[str, StylizeConfig] = {
         proposal_height=160,
         max_views=4,
         render_scale=0.5,
+        optimize_geometry=False,
     ),
 }
 

@@ -1,0 +1,51 @@
+"""``python -m dresg_addon select-views SCENE --cameras cameras.json``: the active views by coverage."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from ._common import add_scene_and_cameras, load_scene_and_cameras
+
+NAME = "select-views"
+HELP = "Choose active views by capped Gaussian coverage (Sec. 4.3) and print them with their coverage."
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_scene_and_cameras(parser)
+    parser.add_argument("--max-views", type=int, default=0, help="cap on the number of views (0: none)")
+    parser.add_argument("--w-min", type=float, default=1e-4, help="minimum support w_min")
+    parser.add_argument("--rho", type=float, default=0.98, help="target fraction rho")
+    parser.add_argument("--coverage-stop", type=float, default=0.9999, help="stop at this total coverage")
+    parser.add_argument("--gain-threshold", type=float, default=0.001, help="stop when a view adds less than this")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def run(args) -> int:
+    from ..config import StylizeConfig
+    from ..pipeline import select_active_views
+
+    scene, cameras = load_scene_and_cameras(args)
+    config = StylizeConfig(
+        max_views=args.max_views,
+        w_min=args.w_min,
+        rho=args.rho,
+        coverage_stop=args.coverage_stop,
+        gain_threshold=args.gain_threshold,
+    )
+    chosen = select_active_views(scene, cameras, config)
+    names = [c.name or f"view_{i:03d}" for i, c in enumerate(cameras)]
+    if args.json:
+        print(json.dumps({
+            "views": [{"index": v, "name": names[v], "coverage_after": c, "own_coverage": chosen.per_view_coverage[v]} for v, c in zip(chosen.indices, chosen.coverage)],
+            "stop_reason": chosen.reason,
+            "blind": [names[v] for v in chosen.blind],
+        }))  # fmt: skip
+        return 0
+    print(f"{'pick':>4}  {'index':>5}  {'camera':<24} {'own':>7}  {'total':>7}")
+    for pick, (v, total) in enumerate(zip(chosen.indices, chosen.coverage), 1):
+        print(f"{pick:>4}  {v:>5}  {names[v]:<24} {chosen.per_view_coverage[v]:>7.4f}  {total:>7.4f}")
+    print(f"{len(chosen.indices)} of {len(cameras)} cameras; stopped: {chosen.reason}")
+    if chosen.blind:
+        print(f"cameras that see nothing: {', '.join(names[v] for v in chosen.blind)}")
+    return 0

@@ -1,0 +1,180 @@
+"""``python -m dresg_addon stylize SCENE --style IMG --out OUT.ply``: the DReSG method end to end."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import fields
+from pathlib import Path
+
+from ..config import PRESETS, PROPOSALS, SCHEDULES, SH_REST_MODES, preset
+from ..errors import ConfigError
+from ._common import add_scene_and_cameras, load_scene_and_cameras, parse_background
+
+NAME = "stylize"
+HELP = "Stylize a 3DGS scene after a style image (DReSG) and write the stylized scene."
+
+# Options that map one-to-one onto StylizeConfig fields: (flag, field, type, help).
+KNOBS = (
+    ("--stages", "stages", int, "feedback stages N/S"),
+    ("--updates", "updates_per_stage", int, "latent updates per stage S"),
+    ("--fit-steps", "fit_steps", int, "fitting steps per stage M"),
+    ("--post-steps", "post_steps", int, "fitting steps after the final colour transfer (0: no post stage)"),
+    ("--content-weight", "content_weight", float, "w_c, weight of the content-query energy"),
+    ("--latent-lr", "latent_lr", float, "Adam learning rate of the latent updates"),
+    ("--color-lr", "color_lr", float, "Adam learning rate of the colours"),
+    ("--geometry-lr", "geometry_lr", float, "Adam learning rate of the geometry offsets"),
+    ("--max-views", "max_views", int, "cap on the number of active views (0: none)"),
+    ("--render-scale", "render_scale", float, "render resolution relative to the cameras' own"),
+    ("--near", "near", float, "near plane of the rasterizer"),
+    ("--seed", "seed", int, "random seed (runs are deterministic for a seed)"),
+)
+SWITCHES = (
+    ("--no-feedback", "feedback", "ablation: keep optimising the first latent instead of re-encoding the render"),
+    ("--no-pcgrad", "pcgrad", "ablation: average colour gradients without conflict projection"),
+    ("--image-space", "logit_space", "ablation: scale residuals in image space instead of RGB-logit space"),
+    ("--no-content-query", "use_content_query", "ablation: drop the content-query energy (w/o Q_c)"),
+    ("--no-style-keys", "use_style_keys", "ablation: attend to the render's own keys (w/o K_s)"),
+    ("--no-style-values", "use_style_values", "ablation: attend to the render's own values (w/o V_s)"),
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_scene_and_cameras(parser)
+    parser.add_argument("--style", required=True, metavar="IMG", help="the style image (png, jpg, exr, tif)")
+    parser.add_argument("--out", required=True, metavar="OUT.ply", help="where to write the stylized scene")
+    parser.add_argument(
+        "--preset",
+        choices=sorted(PRESETS),
+        default="cpu",
+        help="paper: exact defaults; cpu: the paper's schedule, colour-only fitting; preview: quick look",
+    )
+    parser.add_argument("--proposal", choices=PROPOSALS, help="proposal backend: patch (no weights) or sd15")
+    parser.add_argument("--model", metavar="PATH", help="local Stable Diffusion 1.5 folder or .safetensors (sd15)")
+    parser.add_argument("--dino", metavar="PATH", help="local DINO weights for the fit loss's feature term")
+    parser.add_argument("--schedule", choices=SCHEDULES, help="residual-strength schedule")
+    parser.add_argument(
+        "--sh-rest", choices=SH_REST_MODES, help="zero (default): drop view-dependent SH bands; keep: keep them"
+    )
+    parser.add_argument("--proposal-size", metavar="WxH", help="proposal resolution (default 448x320)")
+    geometry = parser.add_mutually_exclusive_group()
+    geometry.add_argument(
+        "--geometry", dest="geometry", action="store_true", default=None, help="optimise bounded geometry offsets"
+    )
+    geometry.add_argument(
+        "--no-geometry", dest="geometry", action="store_false", help="freeze geometry (colour-only fast path)"
+    )
+    parser.add_argument("--views", metavar="I,J,...", help="use these camera indices as active views (skip selection)")
+    parser.add_argument("--background", metavar="R,G,B", help="background colour in [0, 1] (default 0,0,0)")
+    for flag, _, kind, text in KNOBS:
+        parser.add_argument(flag, type=kind, help=text)
+    for flag, _, text in SWITCHES:
+        parser.add_argument(flag, action="store_true", help=text)
+    parser.add_argument(
+        "--save-views", metavar="DIR", help="write each active view's render, proposal, target and residual per stage"
+    )
+    parser.add_argument("--log", metavar="PATH", help="per-stage JSON-lines log (default: OUT.ply with .log.jsonl)")
+    parser.add_argument(
+        "--checkpoint-dir",
+        metavar="DIR",
+        help="stage checkpoints; a rerun with the same settings resumes (default: OUT.ply with .checkpoint)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="print only the summary")
+
+
+def config_from_args(args):
+    overrides = {field: getattr(args, flag[2:].replace("-", "_")) for flag, field, _, _ in KNOBS}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    for flag, field, _ in SWITCHES:
+        if getattr(args, flag[2:].replace("-", "_")):
+            overrides[field] = False
+    for name, field in (
+        ("proposal", "proposal"),
+        ("model", "model_path"),
+        ("dino", "dino_path"),
+        ("schedule", "schedule"),
+        ("sh_rest", "sh_rest"),
+    ):
+        if getattr(args, name):
+            overrides[field] = getattr(args, name)
+    if args.geometry is not None:
+        overrides["optimize_geometry"] = args.geometry
+    if args.background:
+        overrides["background"] = parse_background(args.background)
+    if args.proposal_size:
+        try:
+            width, height = (int(v) for v in args.proposal_size.lower().split("x"))
+        except ValueError:
+            raise ConfigError(f"--proposal-size must look like 448x320 (got {args.proposal_size!r})") from None
+        overrides["proposal_width"], overrides["proposal_height"] = width, height
+    known = {f.name for f in fields(PRESETS[args.preset])}
+    assert set(overrides) <= known  # the tables above name real fields
+    return preset(args.preset, **overrides)
+
+
+def run(args) -> int:
+    from ..imageio import read_rgb
+    from ..io import write_scene
+    from ..pipeline import stylize
+
+    config = config_from_args(args)
+    scene, cameras = load_scene_and_cameras(args)
+    style = read_rgb(args.style)
+    views = None
+    if args.views:
+        try:
+            views = [int(v) for v in args.views.split(",")]
+        except ValueError:
+            raise ConfigError(f"--views must be comma-separated camera indices (got {args.views!r})") from None
+    out = Path(args.out)
+    log_path = Path(args.log) if args.log else out.with_suffix(".log.jsonl")
+    checkpoint_dir = Path(args.checkpoint_dir) if args.checkpoint_dir else out.with_suffix(".checkpoint")
+    if config.proposal == "sd15" and not args.quiet:
+        import torch
+
+        from ..proposal.sd15 import estimate_cpu_seconds
+
+        if not torch.cuda.is_available():
+            estimate = estimate_cpu_seconds(
+                views=config.max_views or 16,
+                stages=config.stages,
+                updates_per_stage=config.updates_per_stage,
+                width=config.proposal_width,
+                height=config.proposal_height,
+            )
+            print(
+                f"note: sd15 on this CPU takes about {estimate / 3600:.1f} h for this schedule (estimate); the patch backend takes minutes",
+                file=sys.stderr,
+            )
+    last = {"stage": -1}
+
+    def progress(p):
+        if args.quiet or p.stage == last["stage"] and p.phase != "done":
+            return
+        if p.phase in ("fit", "post") and p.step < p.steps:
+            return
+        last["stage"] = p.stage
+        eta = f", eta {p.eta_seconds:.0f} s" if p.eta_seconds == p.eta_seconds else ""
+        label = "post" if p.phase == "post" else f"stage {p.stage}/{p.stages}"
+        print(f"{label}: {p.phase} loss {p.loss:.4f}{eta} {p.message}".rstrip(), file=sys.stderr, flush=True)
+
+    messages = (lambda _m: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    started = time.perf_counter()
+    result = stylize(
+        scene,
+        cameras,
+        style,
+        config,
+        views=views,
+        progress=progress,
+        checkpoint_dir=checkpoint_dir,
+        log_path=log_path,
+        save_views_dir=args.save_views,
+        messages=messages,
+    )
+    write_scene(result.scene, out)
+    print(
+        f"wrote {out} ({len(result.scene)} splats, {len(result.selection.indices)} active views, {time.perf_counter() - started:.1f} s); log {log_path}"
+    )
+    return 0
