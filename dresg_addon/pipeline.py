@@ -169,7 +169,9 @@ class _Fit:
 class _Views:
     """Renders the active views of the seen Gaussians, colour-only (cached) or with geometry."""
 
-    def __init__(self, scene: GaussianScene, cameras: list[Camera], seen: torch.Tensor, config: StylizeConfig):
+    def __init__(
+        self, scene: GaussianScene, cameras: list[Camera], seen: torch.Tensor, config: StylizeConfig, fast=None
+    ):
         means, quats, log_scales, logits = _scene_tensors(scene)
         self.means, self.quats = means[seen], quats[seen]
         self.log_scales, self.logits = log_scales[seen], logits[seen]
@@ -325,14 +327,19 @@ def stylize(
     # Gaussians seen by the active views; the rest is left out of fitting.
     report(0, 0, 1, "setup", float("nan"), "preparing renders")
     means, quats, log_scales, logits = _scene_tensors(scene)
-    seen_mask = torch.zeros(len(scene), dtype=torch.bool)
     settings = _raster_settings(config)
-    for camera in active:
-        with torch.no_grad():
-            vis = render(
-                means, quats, log_scales, logits, torch.zeros_like(means), camera, settings, visibility="all"
-            ).visibility
-        seen_mask |= vis > 0
+    fast = None
+    if config.optimize_geometry:
+        seen_mask = torch.zeros(len(scene), dtype=torch.bool)
+        for camera in active:
+            with torch.no_grad():
+                vis = render(
+                    means, quats, log_scales, logits, torch.zeros_like(means), camera, settings, visibility="all"
+                )
+            seen_mask |= vis.visibility > 0
+    else:
+        fast = [ColorOnlyRenderer(means, quats, log_scales, logits, camera, settings) for camera in active]
+        seen_mask = torch.stack([f.seen for f in fast]).any(0)
     seen = torch.nonzero(seen_mask).squeeze(-1)
     if seen.numel() == 0:
         raise CameraError("the active cameras see none of the scene's Gaussians")
@@ -348,7 +355,7 @@ def stylize(
         torch.zeros(seen.numel(), 3, requires_grad=True) if geometry else None,
         torch.zeros(seen.numel(), 4, requires_grad=True) if geometry else None,
     )
-    renderer = _Views(scene, active, seen, config)
+    renderer = _Views(scene, active, seen, config, fast)
     features = _feature_extractor(config, say)
     weights = FitLossWeights(dssim=config.lambda_ssim, tv=config.lambda_tv, feature=config.lambda_feature)
     bounds = GeometryBounds(config.mean_bound, config.log_scale_bound, config.quat_bound)

@@ -294,3 +294,16 @@ def test_real_bonsai_window_matches_reference(shared_data):
     assert ref["alpha"].mean() > 0.3
     full = render_scene(scene, cam)
     assert torch.allclose(full.rgb, out.rgb, atol=1e-6)
+
+
+def test_colour_only_restrict_to_seen_gaussians():
+    scene = random_scene(150, 9)
+    cam = camera()
+    means, quats, log_scales, logits, colors = tensors(scene, dtype=torch.float32)
+    full = ColorOnlyRenderer(means, quats, log_scales, logits, cam)
+    expected = full(colors)
+    keep = torch.nonzero(full.seen).squeeze(-1)
+    narrowed = ColorOnlyRenderer(means, quats, log_scales, logits, cam).restrict(keep)
+    assert torch.allclose(narrowed(colors[keep]), expected, atol=1e-6)
+    with pytest.raises(ValueError, match="must be kept"):
+        ColorOnlyRenderer(means, quats, log_scales, logits, cam).restrict(keep[1:])

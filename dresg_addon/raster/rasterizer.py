@@ -384,21 +384,43 @@ class ColorOnlyRenderer:
             out = render(means, quats, log_scales, opacity_logits, dummy, camera, settings, keep_contributions=True)
         self.camera = camera
         self.shape = (camera.height, camera.width)
-        n_pix = camera.height * camera.width
-        pixel, gauss, weight = (
-            out.contributions if out.contributions else (torch.zeros(0, dtype=torch.long),) * 2 + (torch.zeros(0),)
-        )
-        coo = torch.sparse_coo_tensor(torch.stack([pixel, gauss]), weight, (n_pix, n), check_invariants=False).coalesce()
-        self.matrix = coo.to_sparse_csr()
-        self.matrix_t = coo.t().coalesce().to_sparse_csr()
+        empty = torch.zeros(0, dtype=torch.long, device=means.device)
+        # Contributions arrive sorted by pixel (bands in order, pixels sorted within each band): CSR rows.
+        self._pixel, self._gauss, self._weight = out.contributions or (empty, empty, empty.float())
         bg = torch.tensor(settings.background, dtype=torch.float32, device=means.device)
         self.background = (1.0 - out.alpha.reshape(-1, 1).float()) * bg  # [H*W, 3]
         self.alpha = out.alpha.float()
         self.depth = out.depth.float()
         self.n_pairs = out.n_pairs
-        # Gaussians this view sees at all: the colour step can skip the rest.
+        # Gaussians this view sees at all: the colour step can leave out the rest.
         self.seen = torch.zeros(n, dtype=torch.bool, device=means.device)
-        self.seen[gauss] = True
+        self.seen[self._gauss] = True
+        self._build(n)
+
+    def _build(self, n_columns: int) -> None:
+        n_pix = self.shape[0] * self.shape[1]
+        crow = torch.zeros(n_pix + 1, dtype=torch.long, device=self._pixel.device)
+        crow[1:] = torch.cumsum(torch.bincount(self._pixel, minlength=n_pix), 0)
+        self.matrix = torch.sparse_csr_tensor(
+            crow, self._gauss, self._weight, (n_pix, n_columns), check_invariants=False
+        )
+        order = torch.sort(self._gauss, stable=True).indices
+        crow_t = torch.zeros(n_columns + 1, dtype=torch.long, device=self._pixel.device)
+        crow_t[1:] = torch.cumsum(torch.bincount(self._gauss, minlength=n_columns), 0)
+        self.matrix_t = torch.sparse_csr_tensor(
+            crow_t, self._pixel[order], self._weight[order], (n_columns, n_pix), check_invariants=False
+        )
+
+    def restrict(self, keep: torch.Tensor) -> ColorOnlyRenderer:
+        """Use only the Gaussians ``keep`` (sorted indices, a superset of ``seen``): colours become [len(keep), 3]."""
+        column = torch.full((self.seen.numel(),), -1, dtype=torch.long, device=keep.device)
+        column[keep] = torch.arange(keep.numel(), device=keep.device)
+        self._gauss = column[self._gauss]
+        if (self._gauss < 0).any():
+            raise ValueError("restrict: every Gaussian the view sees must be kept")
+        self.seen = self.seen[keep]
+        self._build(keep.numel())
+        return self
 
     def __call__(self, colors: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [H, W, 3]
         rgb = _SparseColor.apply(colors.float(), self.matrix, self.matrix_t) + self.background

@@ -1,0 +1,420 @@
+"""Evaluation metrics on known cases, extreme inputs, and the CLIP / DINO loading path with tiny random models."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dresg_addon import metrics
+from dresg_addon.camera import Camera, look_at
+from dresg_addon.demo import demo_cameras, demo_scene
+from dresg_addon.errors import ConfigError, ModelError
+from dresg_addon.raster import render_scene
+
+F64 = torch.float64
+
+
+def smooth_image(h=32, w=40, seed=0, dtype=torch.float32) -> torch.Tensor:  # [3, H, W] with edges and texture
+    g = torch.Generator().manual_seed(seed)
+    low = torch.rand(1, 3, h // 4, w // 4, generator=g, dtype=F64)
+    image = torch.nn.functional.interpolate(low, size=(h, w), mode="bilinear", align_corners=False)[0]
+    image = image + 0.1 * torch.rand(3, h, w, generator=g, dtype=F64)
+    return image.clamp(0, 1).to(dtype)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Sliced Wasserstein
+
+
+def test_sliced_wasserstein_1d_shift_is_exact():
+    x = torch.linspace(0, 1, 101, dtype=F64)[:, None]
+    assert float(metrics.sliced_wasserstein(x, x + 0.3)) == pytest.approx(0.3, abs=1e-12)
+
+
+def test_sliced_wasserstein_unequal_counts_matches_quantiles():
+    # The same uniform distribution sampled at 100 and 1000 points: quantile matching makes it ~0.
+    x = ((torch.arange(100, dtype=F64) + 0.5) / 100)[:, None]
+    y = ((torch.arange(1000, dtype=F64) + 0.5) / 1000)[:, None]
+    assert float(metrics.sliced_wasserstein(x, y)) < 2e-3
+    assert float(metrics.sliced_wasserstein(x, y + 0.2)) == pytest.approx(0.2, abs=2e-3)
+
+
+def test_sliced_wasserstein_rejects_bad_shapes():
+    with pytest.raises(ValueError, match="samples"):
+        metrics.sliced_wasserstein(torch.zeros(5, 3), torch.zeros(5, 2))
+    with pytest.raises(ValueError, match="n_projections"):
+        metrics.sliced_wasserstein(torch.zeros(5, 3), torch.zeros(5, 3), n_projections=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_sw_colors_identical_zero_and_shift_grows(dtype):
+    style = smooth_image(dtype=dtype)
+    shifted = [(style + d).clamp(0, 1) for d in (0.0, 0.1, 0.3)]
+    values = metrics.sliced_wasserstein_colors(torch.stack(shifted), style)
+    assert values.dtype == dtype and values.shape == (3,)
+    assert float(values[0]) == 0.0
+    assert 0.0 < float(values[1]) < float(values[2])
+    # A permutation of the pixels has the same colour distribution.
+    permuted = style.reshape(3, -1)[:, torch.randperm(style[0].numel())].reshape(style.shape)
+    assert float(metrics.sliced_wasserstein_colors(permuted, style)[0]) == 0.0
+
+
+def test_sw_colors_list_of_sizes_and_subsampling():
+    style = smooth_image(32, 40)
+    big = torch.nn.functional.interpolate(style[None], scale_factor=2, mode="nearest")[0]  # same distribution
+    values = metrics.sliced_wasserstein_colors([style, big, style.flip(0)], style)
+    assert float(values[0]) == 0.0
+    assert float(values[1]) < 0.01 < float(values[2])
+    sub = metrics.sliced_wasserstein_colors(style, style, max_samples=300)
+    assert float(sub[0]) == 0.0  # same image size and seed: the same subset on both sides
+
+
+def test_sw_colors_deterministic_and_seeded():
+    style, image = smooth_image(seed=0), smooth_image(seed=1)
+    a = metrics.sliced_wasserstein_colors(image, style, seed=3)
+    assert torch.equal(a, metrics.sliced_wasserstein_colors(image, style, seed=3))
+    assert float(a[0]) == pytest.approx(float(metrics.sliced_wasserstein_colors(image, style, seed=4)[0]), rel=0.2)
+
+
+def test_sw_patches_known_cases():
+    style = smooth_image(40, 48)
+    blurred = torch.nn.functional.avg_pool2d(style[None], 5, 1, 2, count_include_pad=False)[0]
+    values = metrics.sliced_wasserstein_patches([style, blurred, (style + 0.3).clamp(0, 1)], style, max_samples=2000)
+    assert float(values[0]) == 0.0
+    assert float(values[1]) > 0.0
+    assert float(values[2]) > float(values[1])
+    # The patch version sees texture that colours alone miss: a pixel shuffle keeps colours, not patches.
+    shuffled = style.reshape(3, -1)[:, torch.randperm(style[0].numel())].reshape(style.shape)
+    assert float(metrics.sliced_wasserstein_colors(shuffled, style)[0]) == 0.0
+    assert float(metrics.sliced_wasserstein_patches(shuffled, style)[0]) > 0.025  # about a +0.05 brightness shift
+
+
+def test_sw_patches_rejects_too_small_images():
+    with pytest.raises(ValueError, match="smaller than the 7x7 patch"):
+        metrics.sliced_wasserstein_patches(torch.rand(3, 5, 20), torch.rand(3, 20, 20))
+    with pytest.raises(ValueError, match=r"\[3, H, W\]"):
+        metrics.sliced_wasserstein_patches(torch.rand(4, 20, 20), torch.rand(3, 20, 20))
+
+
+@pytest.mark.parametrize("fill", [0.0, 0.5, 1.0])
+def test_sw_flat_images_are_finite(fill):
+    flat = torch.full((3, 16, 16), fill)
+    style = smooth_image()
+    for fn in (metrics.sliced_wasserstein_colors, metrics.sliced_wasserstein_patches):
+        assert float(fn(flat, flat)[0]) == 0.0
+        value = fn(flat, style)
+        assert torch.isfinite(value).all() and float(value[0]) > 0.0
+        assert torch.isfinite(fn(style, flat)).all()
+
+
+# ----------------------------------------------------------------------------------------------------
+# Content
+
+
+def test_ssim_per_image():
+    a = smooth_image()
+    values = metrics.ssim_per_image(torch.stack([a, a]), torch.stack([a, (a + 0.2 * torch.rand_like(a)).clamp(0, 1)]))
+    assert values.shape == (2,)
+    assert float(values[0]) == pytest.approx(1.0, abs=1e-6)
+    assert float(values[1]) < 0.95
+    assert float(metrics.ssim_per_image(torch.zeros(3, 8, 8), torch.zeros(3, 8, 8))) == pytest.approx(1.0)
+
+
+def test_gradient_structure_identical_contrast_and_polarity():
+    a = smooth_image(dtype=F64)
+    assert float(metrics.gradient_structure_similarity(a, a)) == pytest.approx(1.0, abs=1e-12)
+    # Global contrast and brightness change, and inverted colours: the same structure.
+    assert float(metrics.gradient_structure_similarity(a, 0.3 + 0.4 * a)) == pytest.approx(1.0, abs=1e-3)
+    assert float(metrics.gradient_structure_similarity(a, 1.0 - a)) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_gradient_structure_drops_when_structure_changes():
+    a = smooth_image(dtype=F64)
+    moved = torch.roll(a, shifts=(3, 5), dims=(1, 2))
+    other = smooth_image(seed=7, dtype=F64)
+    gs_moved = float(metrics.gradient_structure_similarity(a, moved))
+    gs_other = float(metrics.gradient_structure_similarity(a, other))
+    assert gs_moved < 0.8 and gs_other < 0.8
+    # Blur keeps the edges' directions: more similar than different content.
+    blurred = torch.nn.functional.avg_pool2d(a[None], 3, 1, 1, count_include_pad=False)[0]
+    assert float(metrics.gradient_structure_similarity(a, blurred)) > max(gs_moved, gs_other)
+
+
+def test_gradient_structure_flat_and_black_are_defined():
+    black, grey = torch.zeros(3, 16, 16), torch.full((3, 16, 16), 0.5)
+    assert float(metrics.gradient_structure_similarity(black, black)) == pytest.approx(1.0)
+    assert float(metrics.gradient_structure_similarity(black, grey)) == pytest.approx(1.0)  # neither has edges
+    textured = smooth_image(16, 16)
+    value = float(metrics.gradient_structure_similarity(grey, textured))
+    assert 0.0 <= value < 0.05
+
+
+def test_gradient_structure_bounded_on_random_pairs():
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(6, 3, 12, 12, generator=g), torch.rand(6, 3, 12, 12, generator=g)
+    values = metrics.gradient_structure_similarity(a, b)
+    assert values.shape == (6,) and bool(((values >= 0) & (values <= 1)).all())
+
+
+def test_sobel_ramp_has_its_slope():
+    ramp = (torch.arange(10, dtype=F64) * 0.05).expand(3, 8, 10)
+    grad = metrics.sobel_gradients(ramp[None])[0]
+    assert torch.allclose(grad[0, :, 1:-1], torch.full((8, 8), 0.05, dtype=F64))
+    assert torch.allclose(grad[1], torch.zeros(8, 10, dtype=F64))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Consistency: the warp
+
+
+def plane_depth(cam: Camera, plane_z: float) -> torch.Tensor:  # camera z of the world plane z = plane_z
+    v, u = np.meshgrid(np.arange(cam.height) + 0.5, np.arange(cam.width) + 0.5, indexing="ij")
+    rays = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], -1)  # camera z = 1
+    c2w = cam.camera_to_world
+    world_dirs = rays @ c2w[:3, :3].T
+    t = (plane_z - cam.center[2]) / world_dirs[..., 2]
+    return torch.tensor(np.where(t > 0, t, 0.0))
+
+
+def test_warp_matches_analytic_reprojection_on_a_plane():
+    # Source: identity camera looking at the plane z = 2, with an image linear in (u, v) (bilinear is exact).
+    src = Camera(40, 30, 30.0, 30.0, 20.0, 15.0, np.eye(4))
+    dst = Camera(36, 28, 28.0, 29.0, 17.0, 14.5, look_at((0.3, -0.2, -0.1), (0.05, 0.0, 2.0)))
+    v, u = torch.meshgrid(torch.arange(30, dtype=F64) + 0.5, torch.arange(40, dtype=F64) + 0.5, indexing="ij")
+    src_rgb = torch.stack([u / 40, v / 30, 0.25 + 0.01 * u], -1)
+    src_depth = torch.full((30, 40), 2.0, dtype=F64)
+    dst_depth = plane_depth(dst, 2.0)
+    warped, valid = metrics.warp_to(src_rgb, src_depth, src, dst, dst_depth)
+    assert valid.float().mean() > 0.5
+    # Expected: the world point of each destination pixel projected into the source by hand.
+    vd, ud = np.meshgrid(np.arange(28) + 0.5, np.arange(36) + 0.5, indexing="ij")
+    z = dst_depth.numpy()
+    cam_pts = np.stack([(ud - dst.cx) / dst.fx * z, (vd - dst.cy) / dst.fy * z, z, np.ones_like(z)], -1)
+    world = cam_pts @ dst.camera_to_world.T
+    us, vs = 30.0 * world[..., 0] / world[..., 2] + 20.0, 30.0 * world[..., 1] / world[..., 2] + 15.0
+    expected = np.stack([us / 40, vs / 30, 0.25 + 0.01 * us], -1)
+    inside = (us >= 0.5) & (us <= 39.5) & (vs >= 0.5) & (vs <= 29.5)
+    assert np.array_equal(valid.numpy(), inside)
+    np.testing.assert_allclose(warped.numpy()[inside], expected[inside], atol=1e-9)
+    assert float(warped[~valid].abs().max()) == 0.0
+
+
+def test_warp_occlusion_and_alpha_masks():
+    cam = Camera(20, 16, 20.0, 20.0, 10.0, 8.0, np.eye(4))
+    shifted = Camera(20, 16, 20.0, 20.0, 10.0, 8.0, look_at((0.1, 0, 0), (0.1, 0, 1)))
+    rgb = torch.rand(16, 20, 3)
+    depth = torch.full((16, 20), 2.0)
+    src_depth = depth.clone()
+    src_depth[:, :8] = 1.0  # an occluder in front of the plane over the source's left part
+    _, free = metrics.warp_to(rgb, depth, cam, shifted, depth)
+    _, occluded = metrics.warp_to(rgb, src_depth, cam, shifted, depth)
+    assert int(occluded.sum()) < int(free.sum())
+    alpha = torch.ones(16, 20)
+    alpha[5:9] = 0.2
+    _, masked = metrics.warp_to(rgb, depth, cam, shifted, depth, dst_alpha=alpha)
+    assert not masked[5:9].any() and masked.sum() > 0
+    with pytest.raises(ValueError, match="src_depth has shape"):
+        metrics.warp_to(rgb, depth[:-1], cam, shifted, depth)
+
+
+def test_warp_behind_camera_and_far_off_screen_are_invalid():
+    cam = Camera(10, 8, 10.0, 10.0, 5.0, 4.0, np.eye(4))
+    turned = Camera(10, 8, 10.0, 10.0, 5.0, 4.0, look_at((0, 0, 0), (0, 0, -1), up=(0, -1, 0)))  # looks back
+    depth = torch.full((8, 10), 3.0)
+    warped, valid = metrics.warp_to(torch.rand(8, 10, 3), depth, cam, turned, depth)
+    assert not valid.any() and torch.isfinite(warped).all()
+
+
+@pytest.fixture(scope="module")
+def demo_views():
+    """The Lambertian demo scene (no SH rest) from two cameras 5 degrees apart, 96 x 72."""
+    scene = demo_scene()
+    cameras = demo_cameras(n=72, width=96, height=72)[:2]
+    return scene, cameras, [render_scene(scene, c) for c in cameras]
+
+
+def test_warp_of_a_render_matches_the_other_views_render(demo_views):
+    _, cameras, (a, b) = demo_views
+    assert bool((a.depth[a.alpha > 0.5] > 0).all())
+    warped, valid = metrics.warp_to(a.rgb, a.depth, cameras[0], cameras[1], b.depth, a.alpha, b.alpha)
+    coverage = float(valid.float().mean())
+    rmse = metrics.masked_rmse(warped, b.rgb, valid)
+    unwarped = float((a.rgb - b.rgb).pow(2).mean().sqrt())
+    assert coverage > 0.4
+    assert rmse < 0.03 and rmse < 0.25 * unwarped
+
+
+def test_consistency_rmse_detects_per_view_colour_change(demo_views):
+    scene, cameras, (a, b) = demo_views
+    changed = scene.copy()
+    changed.sh_dc = changed.sh_dc + np.float32(0.15 / 0.28209479)  # +0.15 on every colour, view b only
+    b2 = render_scene(changed, cameras[1])
+    consistent = metrics.consistency_rmse([a.rgb, b.rgb], [a.depth, b.depth], [a.alpha, b.alpha], cameras, gap=1)
+    flicker = metrics.consistency_rmse(
+        [a.rgb, b2.rgb.clamp(0, 1)], [a.depth, b2.depth], [a.alpha, b2.alpha], cameras, gap=1
+    )
+    assert len(consistent.pairs) == 1 and consistent.coverage > 0.4
+    assert flicker.rmse > 3 * consistent.rmse and flicker.rmse > 0.1
+    assert flicker.coverage == pytest.approx(consistent.coverage)
+
+
+def test_consistency_rmse_empty_views_and_no_pairs():
+    cam = Camera(12, 10, 12.0, 12.0, 6.0, 5.0, np.eye(4))
+    black, zero = torch.zeros(10, 12, 3), torch.zeros(10, 12)
+    result = metrics.consistency_rmse([black] * 3, [zero] * 3, [zero] * 3, [cam] * 3, gap=1)
+    assert result.rmse is None and result.coverage == 0.0 and len(result.pairs) == 2
+    assert all(p.rmse is None and p.coverage == 0.0 for p in result.pairs)
+    none = metrics.consistency_rmse([black], [zero], [zero], [cam], gap=1)
+    assert none.rmse is None and none.coverage == 0.0 and none.pairs == []
+    # The JSON form has no NaN.
+    json.dumps(result.as_dict(), allow_nan=False)
+    with pytest.raises(ValueError, match="gap"):
+        metrics.consistency_rmse([black], [zero], [zero], [cam], gap=0)
+    with pytest.raises(ValueError, match="cameras"):
+        metrics.consistency_rmse([black] * 2, [zero], [zero], [cam] * 2, gap=1)
+
+
+def test_consistency_gap_pairs():
+    cam = Camera(8, 6, 8.0, 8.0, 4.0, 3.0, np.eye(4))
+    rgb, depth = torch.rand(6, 8, 3), torch.full((6, 8), 1.0)
+    result = metrics.consistency_rmse([rgb] * 6, [depth] * 6, None, [cam] * 6, gap=3)
+    assert [(p.source, p.target) for p in result.pairs] == [(0, 3), (1, 4), (2, 5)]
+    assert result.rmse == 0.0 and result.coverage == 1.0
+
+
+# ----------------------------------------------------------------------------------------------------
+# Efficiency
+
+
+def test_read_stylize_log(tmp_path):
+    path = tmp_path / "log.jsonl"
+    lines = [
+        {"stage": "proposal", "seconds": 1.5, "peak_rss_mb": 800.0},
+        {"stage": 0, "seconds": 4.0, "peak_rss_mb": 1200.5, "peak_cuda_mb": 300},
+        {"stage": 1, "note": "no time here"},
+        {"stage": 1, "seconds": float("nan")},  # written as NaN by json.dumps: ignored
+        [1, 2],
+    ]
+    text = "\n".join(json.dumps(line) for line in lines) + '\n{"stage": 2, "seconds": 9'  # cut short
+    path.write_text(text)
+    summary = metrics.read_stylize_log(path)
+    assert summary.optimisation_seconds == 4.0
+    assert summary.peaks == {"peak_rss_mb": 1200.5, "peak_cuda_mb": 300.0}
+    assert summary.stages == ["proposal", 0, 1]
+    assert summary.records == 4 and summary.skipped == 2
+    out = summary.as_dict()
+    assert out["optimisation_seconds"] == 4.0 and out["peak_rss_mb"] == 1200.5
+    json.dumps(out, allow_nan=False)
+
+
+def test_read_stylize_log_resumed_run(tmp_path):
+    # A resumed run rewrites the finished stages, then its own clock starts again from 0.
+    seconds = [10.0, 20.0, 3.0, 8.0]
+    path = tmp_path / "log.jsonl"
+    path.write_text("".join(json.dumps({"stage": i, "seconds": s}) + "\n" for i, s in enumerate(seconds)))
+    assert metrics.read_stylize_log(path).optimisation_seconds == 28.0
+
+
+def test_read_stylize_log_empty_and_missing(tmp_path):
+    empty = tmp_path / "empty.jsonl"
+    empty.write_text("")
+    summary = metrics.read_stylize_log(empty)
+    assert summary.optimisation_seconds is None and summary.peaks == {} and summary.records == 0
+    with pytest.raises(ConfigError, match="nope.jsonl: stylize log not found"):
+        metrics.read_stylize_log(tmp_path / "nope.jsonl")
+
+
+def test_measure_render(demo_views):
+    scene, cameras, _ = demo_views
+    small = [c.resized(32, 24) for c in cameras]
+    bench = metrics.measure_render(scene, small, repeats=2)
+    assert bench.frames == 4 and bench.seconds > 0 and math.isfinite(bench.fps) and bench.fps > 0
+    assert bench.fps == pytest.approx(bench.frames / bench.seconds)
+    assert bench.peak_rss_mb > 0 and bench.peak_cuda_mb is None
+    with pytest.raises(ValueError, match="repeats"):
+        metrics.measure_render(scene, small, repeats=0)
+
+
+# ----------------------------------------------------------------------------------------------------
+# CLIP-S and DINO-C with tiny random models
+
+
+@pytest.fixture(scope="module")
+def tiny_models(tmp_path_factory):
+    transformers = pytest.importorskip("transformers")
+    root = tmp_path_factory.mktemp("models")
+    torch.manual_seed(0)
+    small = {"hidden_size": 16, "intermediate_size": 32, "num_hidden_layers": 1, "num_attention_heads": 2}
+    clip = transformers.CLIPConfig(
+        text_config={**small, "vocab_size": 64, "max_position_embeddings": 8, "bos_token_id": 0, "eos_token_id": 1},
+        vision_config={**small, "image_size": 32, "patch_size": 8},
+        projection_dim=8,
+    )
+    transformers.CLIPModel(clip).save_pretrained(root / "clip")
+    vit = transformers.ViTConfig(**small, image_size=32, patch_size=8)
+    transformers.ViTModel(vit, add_pooling_layer=False).save_pretrained(root / "vit")
+    transformers.Dinov2Model(transformers.Dinov2Config(**small, image_size=32, patch_size=8)).save_pretrained(
+        root / "dinov2"
+    )
+    # A ViT config with two layers beside one-layer weights: transformers would fill layer 2 at random.
+    (root / "vit_partial").mkdir()
+    (root / "vit_partial" / "model.safetensors").write_bytes((root / "vit" / "model.safetensors").read_bytes())
+    config = json.loads((root / "vit" / "config.json").read_text())
+    (root / "vit_partial" / "config.json").write_text(json.dumps({**config, "num_hidden_layers": 2}))
+    (root / "config_only").mkdir()
+    (root / "config_only" / "config.json").write_text((root / "vit" / "config.json").read_text())
+    return root
+
+
+def test_clip_style_score(tiny_models):
+    from dresg_addon import clip_dino
+
+    model = clip_dino.load_clip(tiny_models / "clip")
+    assert model.image_size == 32 and model.mean == clip_dino.CLIP_MEAN
+    style = smooth_image(40, 48)
+    renders = torch.stack([style, style.flip(-1), torch.zeros_like(style), torch.ones_like(style)])
+    scores = clip_dino.clip_style_score(model, renders, style)
+    assert scores.shape == (4,) and torch.isfinite(scores).all()
+    assert float(scores[0]) == pytest.approx(1.0, abs=1e-5)
+    assert bool((scores.abs() <= 1 + 1e-6).all())
+    # Another image size gives the same embedding after the resize to the model's input.
+    assert float(clip_dino.clip_style_score(model, [style], smooth_image(40, 48))[0]) == pytest.approx(1.0, abs=1e-5)
+
+
+@pytest.mark.parametrize("name", ["vit", "dinov2"])
+def test_dino_content_score(tiny_models, name):
+    from dresg_addon import clip_dino
+
+    model = clip_dino.load_dino(tiny_models / name)
+    assert model.image_size == (32 if name == "vit" else 224)
+    contents = torch.stack([smooth_image(seed=s) for s in range(3)])
+    same = clip_dino.dino_content_score(model, contents, contents)
+    assert torch.allclose(same, torch.ones(3), atol=1e-5)
+    other = clip_dino.dino_content_score(model, contents, contents.roll(1, 0))
+    assert torch.isfinite(other).all() and bool((other <= 1 + 1e-6).all())
+    black = clip_dino.dino_content_score(model, torch.zeros(1, 3, 20, 20), torch.zeros(1, 3, 20, 20))
+    assert float(black[0]) == pytest.approx(1.0, abs=1e-5)
+    with pytest.raises(ValueError, match="content images"):
+        clip_dino.dino_content_score(model, contents, contents[:2])
+
+
+def test_model_errors(tiny_models, tmp_path):
+    from dresg_addon import clip_dino
+
+    with pytest.raises(ModelError, match="no such folder"):
+        clip_dino.load_clip(tmp_path / "missing")
+    with pytest.raises(ModelError, match="no config.json"):
+        clip_dino.load_dino(tmp_path)
+    with pytest.raises(ModelError, match="'clip' is not a DINO model"):
+        clip_dino.load_dino(tiny_models / "clip")
+    with pytest.raises(ModelError, match="'vit' is not a CLIP model"):
+        clip_dino.check_model_folder(tiny_models / "vit", "clip")
+    with pytest.raises(ModelError, match="lack .* parameters"):
+        clip_dino.load_dino(tiny_models / "vit_partial")
+    with pytest.raises(ModelError, match="cannot load the DINO weights") as info:
+        clip_dino.load_dino(tiny_models / "config_only")
+    assert "\n" not in str(info.value)
