@@ -84,11 +84,16 @@ def _plan_bands(y0, y1, est_per_row, height, budget):
     return bands
 
 
+def _take(values, index):
+    """values[index] along dim 0; index_select is several times faster than advanced indexing on CPU."""
+    return torch.index_select(values, 0, index)
+
+
 def _expand(counts):
     """For counts [E]: (owner [P], local offset [P]) with P = counts.sum()."""
     owner = torch.repeat_interleave(torch.arange(counts.numel(), device=counts.device), counts)
     starts = torch.cumsum(counts, 0) - counts
-    local = torch.arange(owner.numel(), device=counts.device) - starts[owner]
+    local = torch.arange(owner.numel(), device=counts.device) - _take(starts, owner)
     return owner, local
 
 
@@ -97,49 +102,56 @@ def _band_pairs(means2d, cov2d, conic, opac, r2, y0, y1, r0, r1, width, settings
 
     ``g`` indexes the band's Gaussians, which arrive sorted by depth, so g is also the depth rank.
     """
+    mx_g, my_g = means2d[:, 0].contiguous(), means2d[:, 1].contiguous()
+    ca_g, cb_g, cc_g = (conic[:, i].contiguous() for i in range(3))
     rows_lo = torch.clamp(y0, min=r0)
     rows_hi = torch.clamp(y1, max=r1 - 1)
     n_rows = (rows_hi - rows_lo + 1).clamp_min(0)
     entry_g, local = _expand(n_rows)
-    row = rows_lo[entry_g] + local
-    mx, my = means2d[entry_g, 0], means2d[entry_g, 1]
+    row = _take(rows_lo, entry_g) + local
     if settings.tile_size > 0:
         # Tile candidates: the bounding box widened to tile boundaries (graphdeco style), then filtered.
         tile = settings.tile_size
         x0, x1 = _col_extents(means2d, cov2d, r2, width)
-        xl = (x0 // tile * tile)[entry_g]
-        xr = torch.clamp((x1 // tile + 1) * tile - 1, max=width - 1)[entry_g]
+        xl = _take(x0 // tile * tile, entry_g)
+        xr = _take(torch.clamp((x1 // tile + 1) * tile - 1, max=width - 1), entry_g)
     else:
         # Exact span: a dx^2 + 2 b dx dy + c dy^2 <= r2 solved for dx at this row's centre.
-        a, b, c = conic[entry_g].unbind(-1)
-        dy = row.to(torch.float64) + 0.5 - my
-        disc = b * b * dy * dy - a * (c * dy * dy - r2[entry_g])
+        a, b, c = _take(ca_g, entry_g), _take(cb_g, entry_g), _take(cc_g, entry_g)
+        mx = _take(mx_g, entry_g)
+        dy = row.to(torch.float64) + 0.5 - _take(my_g, entry_g)
+        disc = b * b * dy * dy - a * (c * dy * dy - _take(r2, entry_g))
         root = torch.sqrt(torch.clamp_min(disc, 0.0))
         xl = torch.clamp(torch.ceil(mx + (-b * dy - root) / a - 0.5), min=0).long()
         xr = torch.clamp(torch.floor(mx + (-b * dy + root) / a - 0.5), max=width - 1).long()
         xr = torch.where(disc >= 0, xr, xl - 1)
     span = (xr - xl + 1).clamp_min(0)
     pair_entry, x_local = _expand(span)
-    g = entry_g[pair_entry]
-    x = xl[pair_entry] + x_local
-    y = row[pair_entry]
+    g = _take(entry_g, pair_entry)
+    x = _take(xl, pair_entry) + x_local
+    y = _take(row, pair_entry)
     del pair_entry, x_local
     dtype = settings.dtype
-    dx = (x.to(dtype) + 0.5) - means2d[g, 0].to(dtype)
-    dy = (y.to(dtype) + 0.5) - means2d[g, 1].to(dtype)
-    cg = conic[g].to(dtype)
-    power = cg[:, 0] * dx * dx + 2.0 * cg[:, 1] * dx * dy + cg[:, 2] * dy * dy
-    raw = opac[g].to(dtype) * torch.exp(-0.5 * power)  # o G before the 0.99 clamp
+    dx = (x.to(dtype) + 0.5) - _take(mx_g.to(dtype), g)
+    dy = (y.to(dtype) + 0.5) - _take(my_g.to(dtype), g)
+    power = (
+        _take(ca_g.to(dtype), g) * dx * dx
+        + 2.0 * _take(cb_g.to(dtype), g) * dx * dy
+        + _take(cc_g.to(dtype), g) * dy * dy
+    )
+    raw = _take(opac.to(dtype), g) * torch.exp(-0.5 * power)  # o G before the 0.99 clamp
     keep = raw >= ALPHA_MIN
     if settings.truncation_sigma > 0:
         keep &= power <= settings.truncation_sigma**2
-    g, pixel, raw = g[keep], (y[keep] - r0) * width + x[keep], raw[keep]
+    keep = torch.nonzero(keep).squeeze(-1)
+    g, raw = _take(g, keep), _take(raw, keep)
+    pixel = (_take(y, keep) - r0) * width + _take(x, keep)
     n_g = means2d.shape[0]
     n_pix = (r1 - r0) * width
     key_dtype = torch.int32 if n_pix * max(n_g, 1) < 2**31 else torch.int64
     key = pixel.to(key_dtype) * n_g + g.to(key_dtype)
     order = torch.sort(key).indices
-    return g[order], pixel[order], raw[order]
+    return _take(g, order), _take(pixel, order), _take(raw, order)
 
 
 def _segments(pixel):
@@ -153,16 +165,21 @@ def _segments(pixel):
     ends[:-1] = starts[1:] - 1
     if ends.numel():
         ends[-1] = n - 1
-    return starts[seg], ends[seg]
+    return _take(starts, seg), _take(ends, seg)
 
 
 def _pixel_offsets(means2d, g, pixel, r0, width, dtype):
     """(dx, dy) [P] from each pair's Gaussian centre to its pixel centre."""
     x = pixel % width
     y = pixel // width + r0
-    dx = (x.to(dtype) + 0.5) - means2d[g, 0].to(dtype)
-    dy = (y.to(dtype) + 0.5) - means2d[g, 1].to(dtype)
+    dx = (x.to(dtype) + 0.5) - _take(means2d[:, 0].to(dtype), g)
+    dy = (y.to(dtype) + 0.5) - _take(means2d[:, 1].to(dtype), g)
     return dx, dy
+
+
+def _rowdot(a, b):
+    """sum over the last axis (size 3) of a * b, as three fused multiply-adds (a small-axis sum is slow)."""
+    return torch.addcmul(torch.addcmul(a[:, 0] * b[:, 0], a[:, 1], b[:, 1]), a[:, 2], b[:, 2])
 
 
 class _Composite(torch.autograd.Function):
@@ -181,7 +198,7 @@ class _Composite(torch.autograd.Function):
         log1m = torch.log1p(-alpha)
         start, end = _segments(pixel)
         excl = torch.cumsum(log1m, 0) - log1m
-        log_t = excl - excl[start]
+        log_t = excl - _take(excl, start)
         include = (log_t + log1m) >= LOG_T_MIN
         if cap > 0:
             include &= (torch.arange(pixel.numel(), device=pixel.device) - start) < cap
@@ -189,7 +206,7 @@ class _Composite(torch.autograd.Function):
         weight = torch.where(include, t_before * alpha, torch.zeros((), dtype=dtype))
         cols = colors.to(dtype)
         rgb = torch.zeros(n_pix, 3, dtype=dtype, device=colors.device)
-        rgb.index_add_(0, pixel, weight[:, None] * cols[g])
+        rgb.index_add_(0, pixel, weight[:, None] * _take(cols, g))
         log_final = torch.zeros(n_pix, dtype=dtype, device=colors.device)
         log_final.index_add_(0, pixel, torch.where(include, log1m, torch.zeros((), dtype=dtype)))
         t_final = torch.exp(log_final)
@@ -198,7 +215,7 @@ class _Composite(torch.autograd.Function):
         with torch.no_grad():
             wsum = torch.zeros(n_pix, dtype=dtype, device=colors.device).index_add_(0, pixel, weight)
             dsum = torch.zeros(n_pix, dtype=dtype, device=colors.device).index_add_(
-                0, pixel, weight * depth[g].to(dtype)
+                0, pixel, weight * _take(depth.to(dtype), g)
             )
             pix_depth = torch.where(wsum > 0, dsum / torch.where(wsum > 0, wsum, 1.0), 0.0)
         ctx.save_for_backward(
@@ -220,13 +237,13 @@ class _Composite(torch.autograd.Function):
         if grad_t is not None:
             tail = tail + grad_t.to(dtype)
         tail = t_final * tail  # [n_pix]: d/dT_final contribution, times T_final
-        gr_pair = gr[pixel]  # [P, 3]
-        dot = (gr_pair * colors.to(dtype)[g]).sum(-1)  # G_p . c_k
+        gr_pair = _take(gr, pixel)  # [P, 3]
+        dot = _rowdot(gr_pair, _take(colors.to(dtype), g))  # G_p . c_k
         cs = torch.cumsum(weight * dot, 0)
-        behind = cs[end] - cs  # sum_{j>k} T_j a_j (G . c_j)
+        behind = _take(cs, end) - cs  # sum_{j>k} T_j a_j (G . c_j)
         included = weight > 0
         d_alpha = torch.where(
-            included, t_before * dot - (behind + tail[pixel]) / (1.0 - alpha), torch.zeros((), dtype=dtype)
+            included, t_before * dot - (behind + _take(tail, pixel)) / (1.0 - alpha), torch.zeros((), dtype=dtype)
         )
         d_alpha = torch.where(unclamped, d_alpha, torch.zeros((), dtype=dtype))
         n_g = means2d.shape[0]
@@ -236,8 +253,8 @@ class _Composite(torch.autograd.Function):
         grad_opac = grad_opac / opac.to(dtype)
         dx, dy = _pixel_offsets(means2d, g, pixel, r0, width, dtype)
         d_power = -0.5 * alpha * d_alpha
-        cg = conic.to(dtype)[g]
-        d_mean = torch.stack([-2.0 * (cg[:, 0] * dx + cg[:, 1] * dy), -2.0 * (cg[:, 1] * dx + cg[:, 2] * dy)], -1)
+        ca, cb, cc = (_take(conic[:, i].to(dtype), g) for i in range(3))
+        d_mean = torch.stack([-2.0 * (ca * dx + cb * dy), -2.0 * (cb * dx + cc * dy)], -1)
         grad_means2d = torch.zeros(n_g, 2, dtype=dtype, device=gr.device).index_add_(0, g, d_power[:, None] * d_mean)
         d_conic = torch.stack([dx * dx, 2.0 * dx * dy, dy * dy], -1)
         grad_conic = torch.zeros(n_g, 3, dtype=dtype, device=gr.device).index_add_(0, g, d_power[:, None] * d_conic)
