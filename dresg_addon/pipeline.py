@@ -110,7 +110,8 @@ def visibility_matrix(scene: GaussianScene, cameras: Sequence[Camera], config: S
         cols.append(nz)
         vals.append(out.visibility[nz])
     index = torch.stack([torch.cat(rows), torch.cat(cols)])
-    return torch.sparse_coo_tensor(index, torch.cat(vals), (len(cameras), len(scene))).coalesce()
+    size = (len(cameras), len(scene))
+    return torch.sparse_coo_tensor(index, torch.cat(vals), size, check_invariants=False).coalesce()
 
 
 def select_active_views(scene: GaussianScene, cameras: Sequence[Camera], config: StylizeConfig) -> ActiveViews:
@@ -170,7 +171,12 @@ class _Views:
     """Renders the active views of the seen Gaussians, colour-only (cached) or with geometry."""
 
     def __init__(
-        self, scene: GaussianScene, cameras: list[Camera], seen: torch.Tensor, config: StylizeConfig, fast=None
+        self,
+        scene: GaussianScene,
+        cameras: list[Camera],
+        seen: torch.Tensor,  # [M] sorted indices of the Gaussians the active views see
+        config: StylizeConfig,
+        fast: list[ColorOnlyRenderer] | None,  # full-scene colour-only renderers (geometry frozen), else None
     ):
         means, quats, log_scales, logits = _scene_tensors(scene)
         self.means, self.quats = means[seen], quats[seen]
@@ -188,12 +194,8 @@ class _Views:
                 dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
                 basis = sh_basis(dirs, degree)[:, 1:]  # [M, K]
                 self.offsets[v] = (basis[:, :, None] * rest).sum(1)
-        self.fast = None
-        if not self.geometry:
-            self.fast = [
-                ColorOnlyRenderer(self.means, self.quats, self.log_scales, self.logits, c, self.settings)
-                for c in cameras
-            ]
+        # Colour-only: the full-scene renderers that found the seen set, narrowed to it (no second rasterization).
+        self.fast = None if self.geometry else [f.restrict(seen) for f in fast]
 
     def __call__(self, v: int, fit: _Fit) -> torch.Tensor:  # -> [3, H, W]
         colors = fit.colors if self.offsets[v] is None else fit.colors + self.offsets[v]
@@ -241,14 +243,39 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _config_hash(config: StylizeConfig, scene: GaussianScene, views: Sequence[int]) -> str:
+def _run_id(
+    config: StylizeConfig,
+    scene: GaussianScene,
+    cameras: Sequence[Camera],  # the active cameras
+    style: torch.Tensor,  # [3, h, w] at the proposal resolution
+    contents: Sequence[torch.Tensor],  # [3, h, w] content image per active view
+) -> str:
+    """What a checkpoint must match to be resumed: the settings, the scene, the active cameras and the images."""
     h = hashlib.sha256(json.dumps(config.to_dict(), sort_keys=True, default=str).encode())
-    h.update(np.ascontiguousarray(scene.means).tobytes()[: 1 << 20])
-    h.update(str(len(scene)).encode() + str(list(views)).encode())
+    for array in (scene.means, scene.log_scales, scene.quats, scene.opacity_logits, scene.sh_dc, scene.sh_rest):
+        if array is not None:
+            h.update(np.ascontiguousarray(array).tobytes())
+    for camera in cameras:
+        h.update(repr((camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)).encode())
+        h.update(np.ascontiguousarray(camera.world_to_camera).tobytes())
+    for image in (style, *contents):
+        h.update(image.contiguous().numpy().tobytes())
     return h.hexdigest()[:16]
 
 
 # --- The loop ----------------------------------------------------------------------------------------------
+
+
+def check_run_settings(config: StylizeConfig) -> None:
+    """Raise ConfigError for settings that are valid on their own but cannot run (checked before any work)."""
+    if config.proposal == "sd15":
+        if not config.model_path:
+            raise ConfigError("the sd15 proposal backend needs a local model path (--model PATH)")
+        if config.proposal_width % 8 or config.proposal_height % 8:
+            raise ConfigError(
+                f"the sd15 proposal size must be a multiple of 8 (got {config.proposal_width}x"
+                f"{config.proposal_height}), e.g. 448x320"
+            )
 
 
 def stylize(
@@ -292,18 +319,27 @@ def stylize(
     style_rgb = np.asarray(style_rgb, dtype=np.float32)
     if style_rgb.ndim != 3 or style_rgb.shape[2] != 3 or not np.isfinite(style_rgb).all():
         raise ConfigError(f"style image must be a finite [H, W, 3] array, got shape {style_rgb.shape}")
+    style_rgb = np.clip(style_rgb, 0.0, 1.0)  # HDR styles (EXR) would give targets outside displayable colours
+    check_run_settings(config)
+    ph, pw = config.proposal_height, config.proposal_width
     torch.manual_seed(config.seed)
     stages = stage_timesteps(config.stages, config.updates_per_stage, config.ddim_steps)
     gammas = stage_gammas(config.schedule, stages)
     n_stages = len(stages)
+    first_stage = 1  # > 1 when resuming from a checkpoint
+    post_share = 0.5 if config.post_steps else 0.0  # the post stage's cost in stages, for the ETA
 
     def report(stage, step, steps, phase, loss, message=""):
         if progress is None:
             return
+        # Work done by this run in stages (the post stage counts post_share), extrapolated linearly.
+        fraction = step / max(steps, 1)
+        done = n_stages + post_share * fraction if stage > n_stages else max(stage - 1 + fraction, 0.0)
+        done -= first_stage - 1
+        total = n_stages - (first_stage - 1) + post_share
         elapsed = time.perf_counter() - start_time
-        done = (stage - 1 + (step / max(steps, 1))) if stage >= 1 else 0.0
-        total = n_stages + (0.5 if config.post_steps else 0.0)
-        eta = elapsed / done * (total - done) if done > 0 else float("nan")
+        rate = elapsed / done if done > 0 else float("nan")
+        eta = 0.0 if phase == "done" else rate * max(total - done, 0.0)
         progress(Progress(stage, n_stages, step, steps, phase, float(loss), eta, message))
 
     def check_cancel():
@@ -368,12 +404,11 @@ def stylize(
         base_features = [features(r[None]).detach() for r in base_renders] if features else None
 
     # Proposal backend and its fixed references at the proposal resolution.
-    backend_kwargs = {"model_path": config.model_path} if config.proposal == "sd15" else {}
-    if config.proposal == "sd15" and not config.model_path:
-        raise ConfigError("the sd15 proposal backend needs a local model path (--model PATH)")
-    backend = make_backend(config.proposal, **backend_kwargs)
+    if config.proposal == "sd15":
+        backend = make_backend("sd15", model_path=config.model_path)
+    else:
+        backend = make_backend(config.proposal, seed=config.seed)  # the patch projections follow the run's seed
     backend.learning_rate = config.latent_lr
-    ph, pw = config.proposal_height, config.proposal_width
     style_t = _resize(torch.from_numpy(style_rgb).permute(2, 0, 1).contiguous(), ph, pw)
     contents = []
     for i, v in enumerate(selection.indices):
@@ -385,13 +420,17 @@ def stylize(
     terms = EnergyTerms(config.content_weight, config.use_content_query, config.use_style_keys, config.use_style_values)
 
     # Resume from a checkpoint of the same run.
-    run_id = _config_hash(config, scene, selection.indices)
     checkpoint = Path(checkpoint_dir) / "checkpoint.pt" if checkpoint_dir else None
-    first_stage, log = 1, []
+    run_id = _run_id(config, scene, active, style_t, contents) if checkpoint is not None else ""
+    log = []
     states = None
     if checkpoint is not None and checkpoint.exists():
-        saved = torch.load(checkpoint, weights_only=False)
-        if saved.get("run_id") == run_id:
+        saved = _load_checkpoint(checkpoint)
+        if saved is None:
+            say(f"ignoring the unreadable checkpoint {checkpoint}; starting over")
+        elif saved.get("run_id") != run_id:
+            say(f"the checkpoint {checkpoint} is from other settings, scene, cameras or style; starting over")
+        else:
             with torch.no_grad():
                 for p, value in zip(fit.params(), saved["params"]):
                     p.copy_(value)
@@ -400,6 +439,7 @@ def stylize(
             say(f"resuming after stage {saved['stage']} from {checkpoint}")
     if states is None:
         states = [backend.encode(_resize(r, ph, pw)) for r in base_renders]
+    last_saved = first_stage - 1  # the stage the checkpoint file holds (0: none of this run)
     log_file = Path(log_path) if log_path else None
     if log_file is not None:
         from .fileutil import atomic_write_bytes
@@ -410,7 +450,7 @@ def stylize(
         with torch.no_grad():
             return [renderer(v, fit).detach() for v in range(len(active))]
 
-    def fit_step(targets, loss_weights) -> float:
+    def fit_step(targets, loss_weights, where: str) -> float:
         """One Adam step of Eq. 16 over all views, colour gradients fused by PCGrad (Eqs. 17-20)."""
         optimizer.zero_grad(set_to_none=True)
         color_grads, geometry_grads, total = [], [[] for _ in fit.geometry()], 0.0
@@ -426,7 +466,8 @@ def stylize(
                 slot.append(g if g is not None else torch.zeros_like(p))
             total += float(loss.detach())
         if not math.isfinite(total):
-            raise NumericalError("the fit loss became non-finite; the last good checkpoint is kept")
+            kept = f"; {checkpoint} keeps the last good stage, {last_saved}" if checkpoint and last_saved else ""
+            raise NumericalError(f"the fit loss became non-finite at {where}, so the run stopped{kept}")
         stacked = torch.stack(color_grads)
         fit.colors.grad = (
             pcgrad_fuse(stacked, config.pcgrad_eps).gradient if config.pcgrad and len(active) > 1 else stacked.mean(0)
@@ -467,7 +508,7 @@ def stylize(
         renders = current_renders()
         targets, images = [], {}
         for i, image in enumerate(renders):
-            proposal = _resize(backend.decode(states[i]).detach().float(), image.shape[1], image.shape[2])
+            proposal = _resize(backend.decode(states[i]).detach().float().cpu(), image.shape[1], image.shape[2])
             residual = proposal_residual(proposal, image)
             targets.append(residual_target(image, residual, gammas[n - 1], "logit" if config.logit_space else "image"))
             images[names[i]] = {
@@ -480,7 +521,7 @@ def stylize(
         losses = []
         for step in range(config.fit_steps):
             check_cancel()
-            losses.append(fit_step(targets, weights))
+            losses.append(fit_step(targets, weights, f"stage {n}, fit step {step + 1}"))
             report(n, step + 1, config.fit_steps, "fit", losses[-1])
         entry = {
             "stage": n,
@@ -505,6 +546,7 @@ def stylize(
             states = [backend.encode(_resize(r, ph, pw)) for r in renders]
         if checkpoint is not None:
             _save_checkpoint(checkpoint, run_id, n, fit, optimizer, states, log)
+            last_saved = n
         if log_file is not None:
             with open(log_file, "a") as handle:
                 handle.write(json.dumps(entry) + "\n")
@@ -523,7 +565,7 @@ def stylize(
         post_start = time.perf_counter()
         for step in range(config.post_steps):
             check_cancel()
-            losses.append(fit_step(targets, weights))
+            losses.append(fit_step(targets, weights, f"post stage step {step + 1}"))
             report(n_stages + 1, step + 1, config.post_steps, "post", losses[-1])
         entry = {
             "stage": "post",
@@ -562,6 +604,15 @@ def _result_scene(scene: GaussianScene, fit: _Fit, config: StylizeConfig) -> Gau
         quats[seen] += fit.d_quats.detach().numpy()
         out = replace(out, means=means, log_scales=log_scales, quats=quats)
     return out
+
+
+def _load_checkpoint(path: Path) -> dict | None:
+    """A checkpoint written by :func:`_save_checkpoint`, or None when it cannot be read."""
+    try:
+        saved = torch.load(path, weights_only=True)  # tensors and plain containers only: no pickled code
+    except Exception:  # a truncated or foreign file of any kind: the run starts over instead
+        return None
+    return saved if isinstance(saved, dict) else None
 
 
 def _save_checkpoint(path: Path, run_id: str, stage: int, fit: _Fit, optimizer, states, log) -> None:

@@ -116,11 +116,12 @@ def config_from_args(args):
 def run(args) -> int:
     from ..imageio import read_rgb
     from ..io import write_scene
-    from ..pipeline import stylize
+    from ..pipeline import check_run_settings, stylize
 
     config = config_from_args(args)
+    check_run_settings(config)
+    style = read_rgb(args.style)  # before the scene, so a bad style path fails at once
     scene, cameras = load_scene_and_cameras(args)
-    style = read_rgb(args.style)
     views = None
     if args.views:
         try:
@@ -143,21 +144,19 @@ def run(args) -> int:
                 width=config.proposal_width,
                 height=config.proposal_height,
             )
+            duration = f"{estimate / 3600:.1f} h" if estimate >= 3600 else f"{estimate / 60:.0f} min"
             print(
-                f"note: sd15 on this CPU takes about {estimate / 3600:.1f} h for this schedule (estimate); the patch backend takes minutes",
+                f"note: sd15 on this CPU takes about {duration} for this schedule (estimate); the patch backend takes minutes",
                 file=sys.stderr,
             )
-    last = {"stage": -1}
 
     def progress(p):
-        if args.quiet or p.stage == last["stage"] and p.phase != "done":
+        # One line per finished stage (and the post stage), with its last fit loss and the ETA.
+        if args.quiet or p.phase not in ("fit", "post") or p.step < p.steps:
             return
-        if p.phase in ("fit", "post") and p.step < p.steps:
-            return
-        last["stage"] = p.stage
         eta = f", eta {p.eta_seconds:.0f} s" if p.eta_seconds == p.eta_seconds else ""
         label = "post" if p.phase == "post" else f"stage {p.stage}/{p.stages}"
-        print(f"{label}: {p.phase} loss {p.loss:.4f}{eta} {p.message}".rstrip(), file=sys.stderr, flush=True)
+        print(f"{label}: fit loss {p.loss:.4f}{eta}", file=sys.stderr, flush=True)
 
     messages = (lambda _m: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     started = time.perf_counter()

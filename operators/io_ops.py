@@ -1,0 +1,153 @@
+"""Import Gaussian Splats (.ply, .splat, compressed .ply) and Export Gaussian Splats (graphdeco .ply)."""
+
+import os
+import time
+import warnings
+
+import bpy
+from bpy_extras.io_utils import ExportHelper, ImportHelper
+
+from ..dresg_addon.errors import DresgError
+from .splat_object import create_splat_object, is_splat_object, scene_from_object
+
+
+class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
+    """Import a 3D Gaussian Splatting scene as one mesh object with a vertex per splat"""
+
+    bl_idname = "dresg.import_splats"
+    bl_label = "Import Gaussian Splats"
+    bl_options = {"REGISTER", "UNDO", "PRESET"}
+
+    filter_glob: bpy.props.StringProperty(default="*.ply;*.splat", options={"HIDDEN"})
+    axis_conversion: bpy.props.EnumProperty(
+        name="Axes",
+        description="Frame the file is in; the conversion is the object's rotation, the data is kept as is",
+        items=(
+            ("OPENCV_TO_BLENDER", "OpenCV / COLMAP", "x right, y down, z forward: rotate -90 degrees about X"),
+            ("NONE", "Blender (none)", "Use the file's coordinates unchanged"),
+        ),
+        default="OPENCV_TO_BLENDER",
+    )
+    shape: bpy.props.EnumProperty(
+        name="Splat Shape",
+        description="Shape drawn for each splat in the viewport",
+        items=(
+            ("ICO", "Ellipsoid", "A low-poly ico sphere scaled to each Gaussian"),
+            ("DISK", "Disk", "A disk across each Gaussian's two largest axes"),
+        ),
+        default="ICO",
+    )
+    scale_factor: bpy.props.FloatProperty(
+        name="Size (sigma)",
+        description="Drawn size of each splat in standard deviations",
+        min=0.0,
+        soft_max=4.0,
+        default=1.5,
+    )
+    min_opacity: bpy.props.FloatProperty(
+        name="Min Opacity", description="Hide splats below this opacity (display only)", min=0.0, max=1.0, default=0.02
+    )
+    max_splats: bpy.props.IntProperty(
+        name="Max Shown",
+        description="Draw at most this many splats, a random subset (display only)",
+        min=0,
+        default=2_000_000,
+    )
+    solid_colors: bpy.props.BoolProperty(
+        name="Colours in Solid Mode",
+        description="Realize the preview so Solid mode can show the colours (heavier for millions of splats)",
+        default=True,
+    )
+    set_viewport_shading: bpy.props.BoolProperty(
+        name="Show Attribute Colours",
+        description="Set Solid mode of the 3D views to colour by attribute",
+        default=True,
+    )
+    drop_invalid: bpy.props.BoolProperty(
+        name="Drop Invalid Splats", description="Drop splats with NaN or infinite values instead of failing"
+    )
+
+    def execute(self, context):
+        from ..dresg_addon.io import InvalidSplatsWarning, read_scene_detailed
+
+        start = time.perf_counter()
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", InvalidSplatsWarning)
+                result = read_scene_detailed(self.filepath, drop_invalid=self.drop_invalid)
+            obj = create_splat_object(
+                context,
+                result.scene,
+                bpy.path.display_name_from_filepath(self.filepath),
+                source_path=self.filepath,
+                source_format=result.format.value,
+                axis_conversion=self.axis_conversion,
+                shape=self.shape,
+                scale_factor=self.scale_factor,
+                min_opacity=self.min_opacity,
+                max_splats=self.max_splats,
+                solid_colors=self.solid_colors,
+            )
+        except DresgError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        if self.set_viewport_shading:
+            for area in context.screen.areas if context.screen else ():
+                if area.type == "VIEW_3D":
+                    area.spaces.active.shading.color_type = "VERTEX"
+        seconds = time.perf_counter() - start
+        message = f"Imported {len(result.scene)} splats ({result.format.value}) as '{obj.name}' in {seconds:.2f} s"
+        if result.dropped:
+            self.report({"WARNING"}, f"{message}; dropped {result.dropped} invalid splats")
+        else:
+            self.report({"INFO"}, message)
+        return {"FINISHED"}
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        for name in ("axis_conversion", "shape", "scale_factor", "min_opacity", "max_splats"):
+            layout.prop(self, name)
+        for name in ("solid_colors", "set_viewport_shading", "drop_invalid"):
+            layout.prop(self, name)
+
+
+class DRESG_OT_export_splats(bpy.types.Operator, ExportHelper):
+    """Export the active splat object, stylized colours and optimised geometry included, as a graphdeco PLY"""
+
+    bl_idname = "dresg.export_splats"
+    bl_label = "Export Gaussian Splats"
+    bl_options = {"REGISTER", "PRESET"}
+
+    filename_ext = ".ply"
+    filter_glob: bpy.props.StringProperty(default="*.ply", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        if not is_splat_object(context.active_object):
+            cls.poll_message_set("Select an object imported with Import Gaussian Splats")
+            return False
+        return True
+
+    def invoke(self, context, event):
+        if not self.filepath:
+            source = context.active_object.get("dresg_source_path", "")
+            folder = os.path.dirname(source) if source else ""
+            self.filepath = os.path.join(folder, f"{bpy.path.clean_name(context.active_object.name)}_stylized.ply")
+        return super().invoke(context, event)
+
+    def execute(self, context):
+        from ..dresg_addon.io import write_scene
+
+        obj = context.active_object
+        try:
+            scene = scene_from_object(obj)
+            write_scene(scene, self.filepath)
+        except DresgError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Exported {len(scene)} splats to {self.filepath}")
+        return {"FINISHED"}
+
+
+classes = (DRESG_OT_import_splats, DRESG_OT_export_splats)

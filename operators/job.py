@@ -1,0 +1,262 @@
+"""A stylization run: the engine in a worker thread, its results applied on Blender's main thread.
+
+The worker never touches bpy. It gets numpy copies taken on the main thread and reports through a
+queue; :meth:`StylizeJob.poll` (called by the modal operator's timer) drains the queue and writes the
+colours of the latest finished stage into the object in one go, so the object always holds one
+consistent stage. Cancelling sets an Event the engine checks between optimizer steps. In background
+mode (``blender -b``, the bpy module) timers do not fire while a script runs, so
+:meth:`StylizeJob.run_blocking` runs the engine on the calling thread and applies results at once.
+"""
+
+import json
+import math
+import queue
+import threading
+import time
+import traceback
+
+import bpy
+
+from ..dresg_addon.errors import CancelledError, DresgError
+from .splat_object import is_splat_object, write_colors, write_geometry
+
+PRINT_INTERVAL = 2.0  # seconds between progress lines in background mode
+
+
+def format_seconds(seconds: float | None) -> str:
+    if seconds is None or not math.isfinite(seconds) or seconds < 0:
+        return "?"
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return f"{seconds}s"
+    if seconds < 3600:
+        return f"{seconds // 60}m {seconds % 60:02d}s"
+    return f"{seconds // 3600}h {seconds % 3600 // 60:02d}m"
+
+
+def tag_redraw() -> None:
+    """Redraw 3D views, sidebars and status bars of every window (nothing to do in background mode)."""
+    for window in bpy.context.window_manager.windows:
+        for area in window.screen.areas:
+            if area.type in {"VIEW_3D", "STATUSBAR", "PROPERTIES", "IMAGE_EDITOR"}:
+                area.tag_redraw()
+
+
+class StylizeJob:
+    """One run of :func:`dresg_addon.pipeline.stylize` on a splat object."""
+
+    def __init__(self, obj, scene, cameras, style_rgb, config, *, views=None, style_name: str = "") -> None:
+        self.object_name = obj.name
+        self.object_uid = obj.session_uid
+        self.n_splats = len(scene)
+        self.config = config
+        self.style_name = style_name
+        self.state = "RUNNING"  # RUNNING, DONE, CANCELLED, ERROR
+        self.fraction = 0.0
+        self.text = "Starting..."
+        self.loss: float | None = None
+        self.eta: float | None = None
+        self.error = ""
+        self.stages_applied = 0
+        self.images: dict = {}  # view name -> {"render"|"proposal"|"target"|"residual": [H, W, 3]}
+        self.seconds = 0.0
+        self.messages: list[str] = []  # the engine's notes (views chosen, Gaussians optimised...)
+        self._inputs = (scene, cameras, style_rgb, views)
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._cancel = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._started = time.monotonic()
+        self._inline = False
+        self._last_print = 0.0
+        self._last_key = None
+
+    # -- life cycle ----------------------------------------------------------------------------
+
+    @property
+    def running(self) -> bool:
+        return self.state == "RUNNING"
+
+    @property
+    def cancel_requested(self) -> bool:
+        return self._cancel.is_set()
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._work, name="dresg-stylize", daemon=True)
+        self._thread.start()
+
+    def run_blocking(self) -> None:
+        """Run on this thread, applying each result as it arrives (background mode)."""
+        self._inline = True
+        self._work()
+
+    def cancel(self) -> None:
+        if self.running:
+            self._cancel.set()
+            self.text = "Cancelling..."
+
+    def abandon(self, reason: str) -> None:
+        """Stop without waiting for the worker (Blender ended the operator, e.g. another file was opened)."""
+        self._cancel.set()
+        if self.running:
+            self.state, self.text = "CANCELLED", reason
+
+    def concerns(self, obj) -> bool:
+        return obj is not None and obj.session_uid == self.object_uid
+
+    def join(self, timeout: float | None = None) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _work(self) -> None:
+        from ..dresg_addon.pipeline import stylize
+
+        scene, cameras, style_rgb, views = self._inputs
+        self._inputs = None  # the snapshot is the worker's now
+        try:
+            result = stylize(
+                scene,
+                cameras,
+                style_rgb,
+                self.config,
+                views=views,
+                progress=lambda progress: self._put("progress", progress),
+                on_stage=lambda update: self._put("stage", update),
+                cancel=self._cancel,
+                messages=lambda message: self._put("message", message),
+            )
+            self._put("done", result)
+        except CancelledError:
+            self._put("cancelled", None)
+        except DresgError as error:
+            self._put("error", str(error))
+        except Exception as error:  # any engine bug must reach the panel, not only the console
+            traceback.print_exc()
+            self._put("error", f"{type(error).__name__}: {error}")
+
+    def _put(self, kind: str, payload) -> None:
+        self._queue.put((kind, payload))
+        if self._inline:
+            self.poll()
+
+    # -- main thread ---------------------------------------------------------------------------
+
+    def poll(self, window_manager=None) -> bool:
+        """Drain the queue and apply what arrived; True once the run has ended."""
+        if not self.running:
+            return True
+        if window_manager is not None and window_manager.is_interface_locked:
+            return False  # rendering or another lock: try again on the next tick
+        progress = stage = final = None
+        while True:
+            try:
+                kind, payload = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if kind == "progress":
+                progress = payload
+            elif kind == "message":
+                self.messages.append(payload)
+                if bpy.app.background:
+                    print(f"[stylize] {payload}", flush=True)
+            elif kind == "stage":
+                stage = payload  # only the newest stage matters: it supersedes older ones
+            else:
+                final = (kind, payload)
+        if progress is not None:
+            self._on_progress(progress)
+        if stage is not None and not self.cancel_requested:
+            self._apply(lambda obj: self._apply_stage(obj, stage))
+        if final is not None:
+            self._finish(*final)
+        if progress is not None or stage is not None or final is not None:
+            tag_redraw()
+        return not self.running
+
+    def _object(self):
+        obj = bpy.data.objects.get(self.object_name)
+        if obj is None or obj.session_uid != self.object_uid:  # renamed, or replaced by undo
+            obj = next((o for o in bpy.data.objects if o.session_uid == self.object_uid), None)
+        if obj is None or not is_splat_object(obj):
+            raise DresgError(f"the splat object '{self.object_name}' is gone (deleted or undone)")
+        return obj
+
+    def _apply(self, write) -> None:
+        try:
+            write(self._object())
+        except Exception as error:  # a failed write ends the run; the message reaches the panel
+            self.error = str(error) if isinstance(error, DresgError) else f"{type(error).__name__}: {error}"
+            self._cancel.set()
+
+    def _apply_stage(self, obj, update) -> None:
+        write_colors(obj, update.sh_dc)
+        if update.means is not None:
+            write_geometry(obj, update.means, update.log_scales, update.quats)
+        if update.images:
+            self.images = update.images
+        self.stages_applied += 1
+
+    def _on_progress(self, progress) -> None:
+        # Stage 0 is the set-up (view selection), stages + 1 the post colour stage: one unit each.
+        stages, steps = max(progress.stages, 1), max(progress.steps, 1)
+        done = min(max(progress.stage - 1, 0), stages) + min(max(progress.step, 0), steps) / steps
+        self.fraction = min(done / (stages + 1), 1.0) if progress.stage >= 1 else 0.0
+        self.loss, self.eta = progress.loss, progress.eta_seconds
+        if progress.stage < 1:
+            parts = [progress.message or progress.phase]
+        else:
+            stage = "Post stage" if progress.stage > progress.stages else f"Stage {progress.stage}/{progress.stages}"
+            parts = [stage, f"{progress.phase} {progress.step}/{progress.steps}"]
+            if progress.loss is not None and math.isfinite(progress.loss):
+                parts.append(f"loss {progress.loss:.4f}")
+            parts.append(f"{format_seconds(progress.eta_seconds)} left")
+        self.text = "Cancelling..." if self.cancel_requested else " | ".join(parts)
+        if bpy.app.background:
+            key = (progress.stage, progress.phase)
+            now = time.monotonic()
+            if key != self._last_key or now - self._last_print >= PRINT_INTERVAL:
+                print(f"[stylize] {self.text}", flush=True)
+                self._last_key, self._last_print = key, now
+
+    def _finish(self, kind: str, payload) -> None:
+        self.seconds = time.monotonic() - self._started
+        if kind == "done":
+            self._apply(lambda obj: self._apply_result(obj, payload))
+        if self.error:
+            self.state = "ERROR"
+        elif kind == "error":
+            self.state, self.error = "ERROR", payload
+        elif kind == "cancelled" or self.cancel_requested:
+            self.state = "CANCELLED"
+            self.text = f"Cancelled after {self.stages_applied} stage(s)"
+        else:
+            self.state, self.fraction = "DONE", 1.0
+            self.text = f"Done in {format_seconds(self.seconds)}"
+        if bpy.app.background:
+            print(f"[stylize] {self.error or self.text}", flush=True)
+
+    def _apply_result(self, obj, result) -> None:
+        scene = result.scene
+        write_colors(obj, scene.sh_dc)
+        if self.config.optimize_geometry:
+            write_geometry(obj, scene.means, scene.log_scales, scene.quats)
+        obj["dresg_sh_rest"] = self.config.sh_rest
+        obj["dresg_stylize_settings"] = json.dumps(
+            {"style": self.style_name, "seconds": round(result.seconds, 1), **self.config.to_dict()}
+        )
+
+
+_job: StylizeJob | None = None
+
+
+def current() -> StylizeJob | None:
+    """The running job, or the last one (its outcome stays visible in the panel)."""
+    return _job
+
+
+def set_current(job: StylizeJob | None) -> None:
+    global _job
+    _job = job
+
+
+def running_on(obj) -> bool:
+    return _job is not None and _job.running and _job.concerns(obj)

@@ -1,0 +1,416 @@
+"""The splat object: a mesh with one vertex per Gaussian, its Geometry Nodes preview and its material.
+
+Arrays come from and go to :mod:`dresg_addon.splat_mesh` (which documents every attribute); this
+module only moves them in and out of Blender with ``foreach_set`` / ``foreach_get`` and builds the
+node trees. Object custom properties:
+
+==========================  ===========================================================
+``dresg_source_path``       the file the splats were imported from
+``dresg_source_format``     its format ("graphdeco PLY", "antimatter15 .splat", ...)
+``dresg_axis_conversion``   ``OPENCV_TO_BLENDER`` or ``NONE``: the rotation applied as the object transform
+``dresg_extras``            ``{name: numpy dtype}`` of extra per-splat file properties
+``dresg_sh_rest``           ``"zero"`` once a stylization dropped view-dependent colour, else ``"keep"``
+``dresg_stylize_settings``  JSON of the last stylization's settings (absent when not stylized)
+==========================  ===========================================================
+"""
+
+import bmesh
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from ..dresg_addon import splat_mesh as sm
+from ..dresg_addon.errors import SceneFormatError
+from ..dresg_addon.scene import GaussianScene
+
+NODE_GROUP = "DReSG Gaussian Splats"
+NODE_GROUP_VERSION = 1  # bump when the tree changes; older trees are rebuilt in place
+MODIFIER = "Gaussian Splats"
+MATERIALS = {"GEOMETRY": "DReSG Splat Colour", "INSTANCER": "DReSG Splat Colour (instanced)"}
+SHAPES = {"ICO": "DReSG Splat Ellipsoid", "DISK": "DReSG Splat Disk"}
+VALUE_KEYS = {"FLOAT": "value", "INT": "value", "FLOAT_VECTOR": "vector", "FLOAT_COLOR": "color", "QUATERNION": "value"}
+DTYPES = {"INT": np.int32}
+
+# Modifier inputs (name -> default); the import operator and the panel set them by name.
+INPUT_SHAPE = "Shape"
+INPUT_SCALE = "Scale Factor"
+INPUT_MIN_OPACITY = "Min Opacity"
+INPUT_MAX_SPLATS = "Max Splats"
+INPUT_SOLID = "Solid Mode Colours"
+
+
+def is_splat_object(obj) -> bool:
+    return obj is not None and obj.type == "MESH" and sm.SH_DC in obj.data.attributes and "dresg_source_path" in obj
+
+
+def write_attributes(mesh, attributes: list[sm.PointAttribute]) -> None:
+    n = len(mesh.vertices)
+    for item in attributes:
+        if item.values.shape[0] != n:
+            raise SceneFormatError(f"attribute '{item.name}' has {item.values.shape[0]} values for {n} splats")
+        attribute = mesh.attributes.get(item.name)
+        if attribute is not None and (attribute.data_type != item.data_type or attribute.domain != "POINT"):
+            mesh.attributes.remove(attribute)
+            attribute = None
+        if attribute is None:
+            attribute = mesh.attributes.new(item.name, item.data_type, "POINT")
+        dtype = DTYPES.get(item.data_type, np.float32)
+        attribute.data.foreach_set(VALUE_KEYS[item.data_type], np.ascontiguousarray(item.values, dtype=dtype).ravel())
+
+
+def read_attribute(mesh, name: str) -> np.ndarray | None:
+    """[N] or [N, C] values of a point attribute, None when the mesh has none of that name."""
+    attribute = mesh.attributes.get(name)
+    if attribute is None or attribute.domain != "POINT" or attribute.data_type not in VALUE_KEYS:
+        return None
+    width = sm.WIDTHS[attribute.data_type]
+    values = np.empty(len(mesh.vertices) * width, dtype=DTYPES.get(attribute.data_type, np.float32))
+    attribute.data.foreach_get(VALUE_KEYS[attribute.data_type], values)
+    return values.reshape(-1, width) if width > 1 else values
+
+
+def read_positions(mesh) -> np.ndarray:  # [N, 3]
+    positions = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", positions)
+    return positions.reshape(-1, 3)
+
+
+def write_positions(mesh, means: np.ndarray) -> None:  # means: [N, 3]
+    mesh.vertices.foreach_set("co", np.ascontiguousarray(means, dtype=np.float32).ravel())
+
+
+def create_splat_object(
+    context,
+    scene: GaussianScene,
+    name: str,
+    *,
+    source_path: str,
+    source_format: str,
+    axis_conversion: str = "OPENCV_TO_BLENDER",
+    shape: str = "ICO",
+    scale_factor: float = 1.5,
+    min_opacity: float = 0.02,
+    max_splats: int = 2_000_000,
+    solid_colors: bool = True,
+) -> bpy.types.Object:
+    """A new object holding ``scene`` losslessly, linked to the active collection and made active."""
+    mesh = bpy.data.meshes.new(name)
+    mesh.vertices.add(len(scene))
+    write_positions(mesh, scene.means)
+    write_attributes(mesh, sm.scene_attributes(scene))
+    color = mesh.color_attributes[sm.COLOR]
+    mesh.color_attributes.active_color = color
+    mesh.color_attributes.render_color_index = mesh.color_attributes.active_color_index
+    mesh.update()
+
+    obj = bpy.data.objects.new(name, mesh)
+    obj.matrix_world = Matrix(sm.AXIS_CONVERSIONS[axis_conversion].tolist()).to_4x4()
+    obj["dresg_source_path"] = str(source_path)
+    obj["dresg_source_format"] = source_format
+    obj["dresg_axis_conversion"] = axis_conversion
+    obj["dresg_extras"] = sm.extra_dtypes(scene)
+    obj["dresg_sh_rest"] = "keep"
+    mesh.materials.append(ensure_material("GEOMETRY"))
+
+    modifier = obj.modifiers.new(MODIFIER, "NODES")
+    modifier.node_group = ensure_node_group()
+    set_modifier_input(modifier, INPUT_SHAPE, ensure_shape_object(shape))
+    set_modifier_input(modifier, INPUT_SCALE, float(scale_factor))
+    set_modifier_input(modifier, INPUT_MIN_OPACITY, float(min_opacity))
+    set_modifier_input(modifier, INPUT_MAX_SPLATS, int(max_splats))
+    set_modifier_input(modifier, INPUT_SOLID, bool(solid_colors))
+
+    context.collection.objects.link(obj)
+    for other in context.view_layer.objects.selected:
+        other.select_set(False)
+    obj.select_set(True)
+    context.view_layer.objects.active = obj
+    return obj
+
+
+def scene_from_object(obj) -> GaussianScene:
+    """The scene an imported (and possibly stylized) splat object holds, in the file's frame."""
+    mesh = obj.data
+    return sm.scene_from_attributes(
+        read_positions(mesh),
+        lambda name: read_attribute(mesh, name),
+        extras=dict(obj.get("dresg_extras", {})),
+        zero_sh_rest=obj.get("dresg_sh_rest") == "zero",
+    )
+
+
+def _check_count(obj, n: int) -> None:
+    if len(obj.data.vertices) != n:
+        raise SceneFormatError(
+            f"'{obj.name}' now has {len(obj.data.vertices)} vertices but the result has {n} splats "
+            "(was the mesh edited during the run?)"
+        )
+
+
+def write_colors(obj, sh_dc: np.ndarray) -> None:  # sh_dc: [N, 3]
+    """Write stylized DC colours: the raw coefficients and the display colour."""
+    mesh = obj.data
+    _check_count(obj, sh_dc.shape[0])
+    write_attributes(mesh, sm.color_attributes(sh_dc, read_attribute(mesh, sm.OPACITY)))
+    mesh.update()
+
+
+def write_geometry(obj, means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray) -> None:
+    """Write optimised geometry (means [N, 3], log-scales [N, 3], quaternions [N, 4]); the imported
+    geometry is kept in ``*_original`` attributes the first time, so it can be restored."""
+    mesh = obj.data
+    _check_count(obj, means.shape[0])
+    if mesh.attributes.get(sm.MEANS_ORIGINAL) is None:
+        write_attributes(
+            mesh,
+            [
+                sm.PointAttribute(sm.MEANS_ORIGINAL, "FLOAT_VECTOR", read_positions(mesh)),
+                sm.PointAttribute(sm.LOG_SCALE_ORIGINAL, "FLOAT_VECTOR", read_attribute(mesh, sm.LOG_SCALE)),
+                sm.PointAttribute(sm.QUAT_ORIGINAL, "QUATERNION", read_attribute(mesh, sm.QUAT)),
+            ],
+        )
+    write_positions(mesh, means)
+    write_attributes(mesh, sm.shape_attributes(log_scales, quats))
+    mesh.update()
+
+
+def restore_original(obj) -> None:
+    """Bring back the imported colours (and geometry, when the optimizer moved it); lossless."""
+    mesh = obj.data
+    write_attributes(
+        mesh, sm.color_attributes(read_attribute(mesh, sm.SH_DC_ORIGINAL), read_attribute(mesh, sm.OPACITY))
+    )
+    means = read_attribute(mesh, sm.MEANS_ORIGINAL)
+    if means is not None:
+        write_positions(mesh, means)
+        write_attributes(
+            mesh,
+            sm.shape_attributes(read_attribute(mesh, sm.LOG_SCALE_ORIGINAL), read_attribute(mesh, sm.QUAT_ORIGINAL)),
+        )
+        for name in (sm.MEANS_ORIGINAL, sm.LOG_SCALE_ORIGINAL, sm.QUAT_ORIGINAL):
+            mesh.attributes.remove(mesh.attributes[name])
+    obj["dresg_sh_rest"] = "keep"
+    if "dresg_stylize_settings" in obj:
+        del obj["dresg_stylize_settings"]
+    mesh.update()
+
+
+# --- Geometry Nodes preview --------------------------------------------------------------------
+
+
+def splat_modifier(obj):
+    for modifier in obj.modifiers:
+        if modifier.type == "NODES" and modifier.node_group is not None and modifier.node_group.name == NODE_GROUP:
+            return modifier
+    return None
+
+
+def set_modifier_input(modifier, name: str, value) -> None:
+    modifier[modifier.node_group.interface.items_tree[name].identifier] = value
+
+
+def get_modifier_input(modifier, name: str):
+    return modifier[modifier.node_group.interface.items_tree[name].identifier]
+
+
+def ensure_shape_object(kind: str) -> bpy.types.Object:
+    """A unit splat shape (ico sphere, subdivision 1, or a 12-sided disk in the XY plane), not in any scene.
+
+    Its mesh carries an (empty) active colour attribute named ``color``: the realized preview takes
+    its active colour attribute from the first instance mesh, which is what Solid mode shows.
+    """
+    name = SHAPES[kind]
+    obj = bpy.data.objects.get(name)
+    if obj is not None and obj.type == "MESH":
+        return obj
+    mesh = bpy.data.meshes.new(name)
+    bm = bmesh.new()
+    if kind == "ICO":
+        bmesh.ops.create_icosphere(bm, subdivisions=1, radius=1.0)
+    else:
+        bmesh.ops.create_circle(bm, cap_ends=True, cap_tris=True, segments=12, radius=1.0)
+    bm.to_mesh(mesh)
+    bm.free()
+    mesh.color_attributes.active_color = mesh.color_attributes.new(sm.COLOR, "FLOAT_COLOR", "POINT")
+    obj = bpy.data.objects.new(name, mesh)
+    obj.use_fake_user = True
+    return obj
+
+
+def ensure_material(lookup: str) -> bpy.types.Material:
+    """Emission of the ``color`` attribute, read from the geometry (realized) or the instancer."""
+    name = MATERIALS[lookup]
+    material = bpy.data.materials.get(name)
+    if material is not None:
+        return material
+    material = bpy.data.materials.new(name)
+    tree = material.node_tree
+    if tree is None:  # Blender < 5.0 creates the tree on request
+        material.use_nodes = True
+        tree = material.node_tree
+    tree.nodes.clear()
+    attribute = tree.nodes.new("ShaderNodeAttribute")
+    attribute.attribute_name = sm.COLOR
+    attribute.attribute_type = lookup
+    emission = tree.nodes.new("ShaderNodeEmission")
+    output = tree.nodes.new("ShaderNodeOutputMaterial")
+    attribute.location, emission.location, output.location = (-400, 0), (-150, 0), (100, 0)
+    tree.links.new(attribute.outputs["Color"], emission.inputs["Color"])
+    tree.links.new(emission.outputs["Emission"], output.inputs["Surface"])
+    return material
+
+
+def ensure_node_group() -> bpy.types.GeometryNodeTree:
+    group = bpy.data.node_groups.get(NODE_GROUP)
+    if group is not None and group.get("dresg_version") == NODE_GROUP_VERSION:
+        return group
+    if group is None:
+        group = bpy.data.node_groups.new(NODE_GROUP, "GeometryNodeTree")
+    _build_node_group(group)
+    group["dresg_version"] = NODE_GROUP_VERSION
+    return group
+
+
+def _build_node_group(group) -> None:
+    """Instance on Points: a shape per visible splat, scaled by its scale, rotated by its quaternion.
+
+    Visible = opacity >= Min Opacity and display rank < Max Splats (display only; the data stays
+    whole). With Solid Mode Colours the instances are realized, so Solid mode's Attribute colouring
+    sees the colour; without, drawing is lighter and Material Preview still shows the colours.
+    """
+    group.nodes.clear()
+    group.interface.clear()
+    interface = group.interface
+    interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    interface.new_socket(INPUT_SHAPE, in_out="INPUT", socket_type="NodeSocketObject")
+    scale = interface.new_socket(INPUT_SCALE, in_out="INPUT", socket_type="NodeSocketFloat")
+    scale.default_value, scale.min_value, scale.max_value = 1.5, 0.0, 10.0
+    opacity = interface.new_socket(INPUT_MIN_OPACITY, in_out="INPUT", socket_type="NodeSocketFloat")
+    opacity.default_value, opacity.min_value, opacity.max_value = 0.02, 0.0, 1.0
+    cap = interface.new_socket(INPUT_MAX_SPLATS, in_out="INPUT", socket_type="NodeSocketInt")
+    cap.default_value, cap.min_value = 2_000_000, 0
+    solid = interface.new_socket(INPUT_SOLID, in_out="INPUT", socket_type="NodeSocketBool")
+    solid.default_value = True
+    interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+
+    nodes, links = group.nodes, group.links
+
+    def node(kind, x, y, **settings):
+        new = nodes.new(kind)
+        new.location = (x, y)
+        for key, value in settings.items():
+            setattr(new, key, value)
+        return new
+
+    def named(name, data_type, x, y):
+        attribute = node("GeometryNodeInputNamedAttribute", x, y, data_type=data_type)
+        attribute.inputs["Name"].default_value = name
+        return attribute.outputs["Attribute"]
+
+    inputs = node("NodeGroupInput", -1400, 0)
+    output = node("NodeGroupOutput", 1450, 0)
+
+    # Selection: opacity >= Min Opacity and rank < Max Splats.
+    visible = node("FunctionNodeCompare", -900, 400, data_type="FLOAT", operation="GREATER_EQUAL")
+    links.new(named(sm.OPACITY, "FLOAT", -1150, 450), visible.inputs[0])
+    links.new(inputs.outputs[INPUT_MIN_OPACITY], visible.inputs[1])
+    capped = node("FunctionNodeCompare", -900, 250, data_type="INT", operation="LESS_THAN")
+    links.new(named(sm.DISPLAY_RANK, "INT", -1150, 300), capped.inputs[2])
+    links.new(inputs.outputs[INPUT_MAX_SPLATS], capped.inputs[3])
+    selection = node("FunctionNodeBooleanMath", -700, 350, operation="AND")
+    links.new(visible.outputs[0], selection.inputs[0])
+    links.new(capped.outputs[0], selection.inputs[1])
+
+    # Disk frame: the smallest axis becomes the instance's Z (see dresg_addon.splat_mesh).
+    scale_attr = named(sm.SCALE, "FLOAT_VECTOR", -1150, 0)
+    xyz = node("ShaderNodeSeparateXYZ", -1000, 0)
+    links.new(scale_attr, xyz.inputs[0])
+    x, y, z = xyz.outputs
+
+    def compare_le(a, b, px, py):
+        result = node("FunctionNodeCompare", px, py, data_type="FLOAT", operation="LESS_EQUAL")
+        links.new(a, result.inputs[0])
+        links.new(b, result.inputs[1])
+        return result.outputs[0]
+
+    def both(a, b, px, py):
+        result = node("FunctionNodeBooleanMath", px, py, operation="AND")
+        links.new(a, result.inputs[0])
+        links.new(b, result.inputs[1])
+        return result.outputs[0]
+
+    def combine(a, b, c, px, py):
+        result = node("ShaderNodeCombineXYZ", px, py)
+        for socket, value in zip(result.inputs, (a, b, c)):
+            links.new(value, socket)
+        return result.outputs[0]
+
+    def switch(kind, condition, if_false, if_true, px, py):
+        result = node("GeometryNodeSwitch", px, py, input_type=kind)
+        links.new(condition, result.inputs[0])
+        links.new(if_false, result.inputs[1])
+        links.new(if_true, result.inputs[2])
+        return result.outputs[0]
+
+    x_smallest = both(compare_le(x, y, -850, -100), compare_le(x, z, -850, -200), -700, -150)
+    y_smallest = both(compare_le(y, x, -850, -300), compare_le(y, z, -850, -400), -700, -350)
+    scale_yx = switch("VECTOR", y_smallest, scale_attr, combine(z, x, y, -700, -500), -500, -350)
+    scale_vec = switch("VECTOR", x_smallest, scale_yx, combine(y, z, x, -700, -50), -350, -150)
+    scaled = node("ShaderNodeVectorMath", -200, -150, operation="SCALE")
+    links.new(scale_vec, scaled.inputs[0])
+    links.new(inputs.outputs[INPUT_SCALE], scaled.inputs["Scale"])
+
+    identity = node("FunctionNodeEulerToRotation", -700, -650)
+    frame_x = node("FunctionNodeEulerToRotation", -700, -750)
+    frame_x.inputs[0].default_value = sm.DISK_FRAME_X_SMALLEST
+    frame_y = node("FunctionNodeEulerToRotation", -700, -850)
+    frame_y.inputs[0].default_value = sm.DISK_FRAME_Y_SMALLEST
+    frame = switch(
+        "ROTATION",
+        x_smallest,
+        switch("ROTATION", y_smallest, identity.outputs[0], frame_y.outputs[0], -500, -750),
+        frame_x.outputs[0],
+        -350,
+        -700,
+    )
+    rotation = node("FunctionNodeRotateRotation", -200, -500, rotation_space="LOCAL")
+    links.new(named(sm.ROTATION, "QUATERNION", -500, -550), rotation.inputs["Rotation"])
+    links.new(frame, rotation.inputs["Rotate By"])
+
+    # The shape, without its placeholder colour (the instances' colour replaces it), with a material
+    # that reads the colour where it will be: on the realized geometry, or on the instancer.
+    shape = node("GeometryNodeObjectInfo", -1150, 700)
+    links.new(inputs.outputs[INPUT_SHAPE], shape.inputs["Object"])
+    no_color = node("GeometryNodeRemoveAttribute", -900, 700)
+    no_color.inputs["Name"].default_value = sm.COLOR
+    links.new(shape.outputs["Geometry"], no_color.inputs["Geometry"])
+    material = node("GeometryNodeSwitch", -900, 850, input_type="MATERIAL")
+    links.new(inputs.outputs[INPUT_SOLID], material.inputs[0])
+    material.inputs[1].default_value = ensure_material("INSTANCER")
+    material.inputs[2].default_value = ensure_material("GEOMETRY")
+    set_material = node("GeometryNodeSetMaterial", -650, 700)
+    links.new(no_color.outputs[0], set_material.inputs["Geometry"])
+    links.new(material.outputs[0], set_material.inputs["Material"])
+
+    instances = node("GeometryNodeInstanceOnPoints", 100, 100)
+    links.new(inputs.outputs["Geometry"], instances.inputs["Points"])
+    links.new(selection.outputs[0], instances.inputs["Selection"])
+    links.new(set_material.outputs[0], instances.inputs["Instance"])
+    links.new(rotation.outputs[0], instances.inputs["Rotation"])
+    links.new(scaled.outputs["Vector"], instances.inputs["Scale"])
+
+    # Only the colour travels to the instances: realizing copies every instance attribute to each
+    # vertex of each splat, and the raw scene attributes would cost most of the time and memory.
+    geometry = instances.outputs[0]
+    for index, (mode, pattern) in enumerate(
+        (("Wildcard", "dresg_*"), ("Exact", sm.OPACITY), ("Exact", sm.SCALE), ("Exact", sm.ROTATION), ("Exact", ".*"))
+    ):
+        remove = node("GeometryNodeRemoveAttribute", 300 + 150 * index, 250)
+        remove.inputs["Pattern Mode"].default_value = mode
+        remove.inputs["Name"].default_value = pattern
+        links.new(geometry, remove.inputs["Geometry"])
+        geometry = remove.outputs[0]
+    realized = node("GeometryNodeRealizeInstances", 1050, 0)
+    links.new(geometry, realized.inputs[0])
+    result = switch("GEOMETRY", inputs.outputs[INPUT_SOLID], geometry, realized.outputs[0], 1250, 100)
+    links.new(result, output.inputs[0])

@@ -1,0 +1,277 @@
+"""Stylize Gaussians, its cancel, Restore Original Colours and the per-view images of the last stage."""
+
+import os
+
+import bpy
+import numpy as np
+
+from ..dresg_addon import splat_mesh
+from ..dresg_addon.errors import DresgError, ImageError
+from . import ADDON_PACKAGE, job
+from .splat_object import is_splat_object, restore_original, scene_from_object
+from .views import active_cameras, engine_cameras, scene_cameras
+
+IMAGE_KINDS = ("render", "proposal", "target", "residual")
+
+
+def addon_preferences(context):
+    """The add-on preferences, or None when it runs unregistered as an add-on (scripts, tests)."""
+    addon = context.preferences.addons.get(ADDON_PACKAGE)
+    return addon.preferences if addon is not None else None
+
+
+def style_image(settings) -> tuple[np.ndarray, str]:
+    """The style picture as [H, W, 3] float32 in [0, 1], and a name for it."""
+    if settings.style_source == "IMAGE":
+        image = settings.style_image
+        if image is None:
+            raise ImageError("no style image chosen")
+        width, height = image.size
+        channels = image.channels
+        if width * height == 0 or channels == 0:
+            raise ImageError(f"style image '{image.name}' has no pixels (is its file missing?)")
+        pixels = np.empty(width * height * channels, dtype=np.float32)
+        image.pixels.foreach_get(pixels)
+        if image.is_float:  # float buffers are scene-linear; the method works on display values
+            pixels = splat_mesh.linear_to_srgb(pixels)
+        return splat_mesh.image_from_pixels(pixels, width, height, channels), image.name
+    from ..dresg_addon.imageio import read_rgb
+
+    if not settings.style_path:
+        raise ImageError("no style image chosen")
+    path = bpy.path.abspath(settings.style_path)
+    return read_rgb(path), os.path.basename(path)
+
+
+def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[job.StylizeJob, str]:
+    """A job for the active splat object from the panel's settings (not started), and a note for the user.
+
+    Views: the ticked cameras are the active views; with none ticked, the engine chooses among all of the
+    scene's cameras by coverage, or among an orbit ring (not added to the scene) when there are none.
+    Model paths default to the add-on preferences.
+    """
+    obj, scene = context.active_object, context.scene
+    settings = scene.dresg
+    prefs = addon_preferences(context)
+    model_path = model_path or (prefs.sd15_path if prefs is not None else "")
+    dino_path = dino_path or (prefs.dino_path if prefs is not None else "")
+    config = settings.config(
+        model_path=bpy.path.abspath(model_path) if model_path else "",
+        dino_path=bpy.path.abspath(dino_path) if dino_path else "",
+    )
+    style, style_name = style_image(settings)
+    splats = scene_from_object(obj)
+    ticked = active_cameras(scene)
+    camera_objects = ticked or scene_cameras(scene)
+    views = list(range(len(ticked))) if ticked else None
+    note = ""
+    if camera_objects:
+        cameras = engine_cameras(scene, obj, camera_objects)
+    else:
+        from ..dresg_addon.orbit import orbit_cameras
+
+        note = f"No cameras in the scene: using {settings.orbit_count} orbit cameras"
+        up = splat_mesh.local_up(np.array(obj.matrix_world))
+        cameras = orbit_cameras(splats, settings.orbit_count, elevation_deg=settings.orbit_elevation, up=up)
+    return job.StylizeJob(obj, splats, cameras, style, config, views=views, style_name=style_name), note
+
+
+def _cuda_available() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+class DRESG_OT_stylize(bpy.types.Operator):
+    """Stylize the active splat object after the style image, as seen from the ticked cameras (DReSG).
+    Runs in the background; the viewport shows the colours after each stage. Esc cancels"""
+
+    bl_idname = "dresg.stylize"
+    bl_label = "Stylize Gaussians"
+    bl_options = {"REGISTER", "UNDO"}
+
+    model_path: bpy.props.StringProperty(
+        name="SD1.5 Model", description="Overrides the add-on preferences (scripts)", options={"HIDDEN", "SKIP_SAVE"}
+    )
+    dino_path: bpy.props.StringProperty(
+        name="DINOv2 Weights", description="Overrides the add-on preferences (scripts)", options={"HIDDEN", "SKIP_SAVE"}
+    )
+
+    _timer = None
+    _job = None
+
+    @classmethod
+    def poll(cls, context):
+        from .dependencies import torch_available
+
+        if not is_splat_object(context.active_object):
+            cls.poll_message_set("Select an object imported with Import Gaussian Splats")
+            return False
+        current = job.current()
+        if current is not None and current.running:
+            cls.poll_message_set("A stylization is already running")
+            return False
+        if not torch_available():
+            cls.poll_message_set("PyTorch is not installed: use Install Dependencies in the add-on preferences")
+            return False
+        return True
+
+    def _prepare(self, context) -> job.StylizeJob:
+        run, note = prepare_job(context, model_path=self.model_path, dino_path=self.dino_path)
+        if note:
+            self.report({"INFO"}, note)
+        return run
+
+    def execute(self, context):
+        try:
+            run = self._prepare(context)
+        except DresgError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        job.set_current(run)
+        run.run_blocking()
+        return self._report(run)
+
+    def invoke(self, context, event):
+        if bpy.app.background:
+            return self.execute(context)
+        try:
+            run = self._prepare(context)
+        except DresgError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        if run.config.proposal == "sd15" and not _cuda_available():
+            self.report({"WARNING"}, "SD1.5 without a GPU: each latent update takes seconds per view, expect hours")
+        job.set_current(run)
+        run.start()
+        self._job = run
+        self._timer = context.window_manager.event_timer_add(0.25, window=context.window)
+        context.window_manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type == "ESC" and event.value == "PRESS":
+            self._job.cancel()
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER" or not self._job.poll(context.window_manager):
+            return {"PASS_THROUGH"}
+        context.window_manager.event_timer_remove(self._timer)
+        return self._report(self._job)
+
+    def cancel(self, context):  # Blender ends the operator (file loaded, window closed)
+        self._job.abandon("Cancelled: the run was interrupted")
+        context.window_manager.event_timer_remove(self._timer)
+
+    def _report(self, run: job.StylizeJob):
+        if run.state == "ERROR":
+            self.report({"ERROR"}, f"Stylize Gaussians failed: {run.error}")
+            return {"CANCELLED"}
+        if run.state == "CANCELLED":
+            self.report({"WARNING"}, f"{run.text}; Restore Original Colours brings back the imported ones")
+            return {"FINISHED"}  # the applied stages stay, as one undo step
+        self.report({"INFO"}, f"Stylized {run.n_splats} splats in {job.format_seconds(run.seconds)}")
+        return {"FINISHED"}
+
+
+class DRESG_OT_cancel_stylize(bpy.types.Operator):
+    """Stop the running stylization after the current optimizer step; the last finished stage stays"""
+
+    bl_idname = "dresg.cancel_stylize"
+    bl_label = "Cancel Stylization"
+
+    @classmethod
+    def poll(cls, context):
+        current = job.current()
+        return current is not None and current.running and not current.cancel_requested
+
+    def execute(self, context):
+        job.current().cancel()
+        return {"FINISHED"}
+
+
+class DRESG_OT_restore_colors(bpy.types.Operator):
+    """Bring back the colours (and geometry) the splats had when imported"""
+
+    bl_idname = "dresg.restore_colors"
+    bl_label = "Restore Original Colours"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        if not is_splat_object(context.active_object):
+            cls.poll_message_set("Select an object imported with Import Gaussian Splats")
+            return False
+        return True
+
+    def execute(self, context):
+        obj = context.active_object
+        if job.running_on(obj):  # the run must not write over the restored colours
+            job.current().cancel()
+        restore_original(obj)
+        job.tag_redraw()
+        self.report({"INFO"}, f"Restored the original colours of {len(obj.data.vertices)} splats")
+        return {"FINISHED"}
+
+
+class DRESG_OT_open_view_images(bpy.types.Operator):
+    """Open the render, proposal, target and residual of each view of the last stage as Blender images"""
+
+    bl_idname = "dresg.open_view_images"
+    bl_label = "Open View Images"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        current = job.current()
+        if current is None or not current.images:
+            cls.poll_message_set("No stage has finished yet")
+            return False
+        return True
+
+    def execute(self, context):
+        images = []
+        for view, kinds in job.current().images.items():
+            for kind in IMAGE_KINDS:
+                if kinds.get(kind) is not None:
+                    images.append(_store_image(f"DReSG {view} {kind}", kinds[kind]))
+        for area in context.screen.areas if context.screen else ():
+            if area.type == "IMAGE_EDITOR" and images:
+                area.spaces.active.image = images[0]
+        self.report({"INFO"}, f"{len(images)} images ready in the Image Editor (DReSG ...)")
+        return {"FINISHED"}
+
+
+def _store_image(name: str, array: np.ndarray):
+    """Create or refill a byte (sRGB) image named ``name`` from a top-down [H, W, 3] array in [0, 1]."""
+    height, width = array.shape[:2]
+    image = bpy.data.images.get(name)
+    if image is None or tuple(image.size) != (width, height):
+        if image is not None:
+            bpy.data.images.remove(image)
+        image = bpy.data.images.new(name, width, height, alpha=False)
+    image.pixels.foreach_set(splat_mesh.pixels_from_image(array))
+    image.update()
+    return image
+
+
+class DRESG_OT_dismiss(bpy.types.Operator):
+    """Clear the outcome of the last stylization from the panel"""
+
+    bl_idname = "dresg.dismiss"
+    bl_label = "Dismiss"
+    bl_options = {"INTERNAL"}
+
+    def execute(self, context):
+        current = job.current()
+        if current is not None and not current.running:
+            job.set_current(None)
+        return {"FINISHED"}
+
+
+classes = (
+    DRESG_OT_stylize,
+    DRESG_OT_cancel_stylize,
+    DRESG_OT_restore_colors,
+    DRESG_OT_open_view_images,
+    DRESG_OT_dismiss,
+)

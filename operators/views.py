@@ -1,0 +1,211 @@
+"""Views: the scene's cameras as engine cameras, coverage-based view selection, orbit cameras.
+
+Cameras are converted in the splat object's LOCAL frame (its transform, axis conversion included,
+is respected) by :mod:`dresg_addon.blender_camera`; the render resolution is the scene's.
+"""
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from ..dresg_addon import blender_camera
+from ..dresg_addon.errors import DresgError
+from .splat_object import is_splat_object, scene_from_object
+
+ORBIT_COLLECTION = "DReSG Orbit Cameras"
+
+
+def scene_cameras(scene) -> list:
+    """The scene's camera objects, in a stable (name) order."""
+    return sorted((obj for obj in scene.objects if obj.type == "CAMERA"), key=lambda obj: obj.name)
+
+
+def active_cameras(scene) -> list:
+    """The camera objects ticked in the Views list."""
+    return [obj for obj in scene_cameras(scene) if obj.dresg_view.use]
+
+
+def camera_params(scene, camera_object) -> blender_camera.BlenderCameraParams:
+    data, render = camera_object.data, scene.render
+    return blender_camera.BlenderCameraParams(
+        lens=data.lens,
+        sensor_width=data.sensor_width,
+        sensor_height=data.sensor_height,
+        sensor_fit=data.sensor_fit,
+        shift_x=data.shift_x,
+        shift_y=data.shift_y,
+        resolution_x=render.resolution_x,
+        resolution_y=render.resolution_y,
+        resolution_percentage=render.resolution_percentage,
+        pixel_aspect_x=render.pixel_aspect_x,
+        pixel_aspect_y=render.pixel_aspect_y,
+        matrix_world=np.array(camera_object.matrix_world),
+        camera_type=data.type,
+    )
+
+
+def engine_cameras(scene, splat_object, camera_objects) -> list:
+    """Engine cameras (OpenCV, in the splat object's local frame) for Blender camera objects."""
+    matrix = np.array(splat_object.matrix_world)
+    cameras = []
+    for obj in camera_objects:
+        try:
+            cameras.append(blender_camera.blender_to_camera(camera_params(scene, obj), matrix, name=obj.name))
+        except DresgError as error:
+            raise type(error)(f"camera '{obj.name}': {error}") from None
+    return cameras
+
+
+def add_camera_objects(context, splat_object, cameras, collection_name: str = ORBIT_COLLECTION) -> list:
+    """Blender camera objects reproducing engine cameras given in the splat object's local frame."""
+    collection = bpy.data.collections.get(collection_name)
+    if collection is None:
+        collection = bpy.data.collections.new(collection_name)
+    if collection.name not in context.scene.collection.children:
+        context.scene.collection.children.link(collection)
+    matrix = np.array(splat_object.matrix_world)
+    objects = []
+    for camera in cameras:
+        params = blender_camera.camera_to_blender(camera, matrix)
+        data = bpy.data.cameras.new(camera.name)
+        data.lens, data.sensor_fit = params.lens, params.sensor_fit
+        data.sensor_width, data.sensor_height = params.sensor_width, params.sensor_height
+        data.shift_x, data.shift_y = params.shift_x, params.shift_y
+        data.clip_start = 0.01
+        obj = bpy.data.objects.new(camera.name, data)
+        obj.matrix_world = Matrix(params.matrix_world.tolist())
+        obj.dresg_view.use = True
+        collection.objects.link(obj)
+        objects.append(obj)
+    return objects
+
+
+def _splat_poll(cls, context) -> bool:
+    if not is_splat_object(context.active_object):
+        cls.poll_message_set("Select an object imported with Import Gaussian Splats")
+        return False
+    return True
+
+
+class DRESG_OT_select_views(bpy.types.Operator):
+    """Tick the cameras that together cover the scene's Gaussians best (greedy capped coverage, Sec. 4.3)"""
+
+    bl_idname = "dresg.select_views"
+    bl_label = "Select Views by Coverage"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        from .dependencies import torch_available
+
+        if not _splat_poll(cls, context):
+            return False
+        if not scene_cameras(context.scene):
+            cls.poll_message_set("The scene has no cameras: add orbit cameras first")
+            return False
+        if not torch_available():
+            cls.poll_message_set("PyTorch is not installed (see the add-on preferences)")
+            return False
+        return True
+
+    def execute(self, context):
+        from ..dresg_addon.pipeline import select_active_views
+
+        obj, scene = context.active_object, context.scene
+        settings = scene.dresg
+        objects = scene_cameras(scene)
+        try:
+            cameras = engine_cameras(scene, obj, objects)
+            selection = select_active_views(scene_from_object(obj), cameras, settings.config())
+        except DresgError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        picks = {index: order + 1 for order, index in enumerate(selection.indices)}
+        for index, camera_object in enumerate(objects):
+            view = camera_object.dresg_view
+            view.use = index in picks
+            view.pick = picks.get(index, 0)
+            view.coverage = float(selection.per_view_coverage[index])
+        total = selection.coverage[-1] if selection.coverage else 0.0
+        message = f"Selected {len(picks)} of {len(objects)} views: coverage {100 * total:.2f}% ({selection.reason})"
+        blind = [objects[index].name for index in selection.blind]
+        if blind:
+            self.report({"WARNING"}, f"{message}; {len(blind)} see none of the splats: {', '.join(blind[:5])}")
+        else:
+            self.report({"INFO"}, message)
+        return {"FINISHED"}
+
+
+class DRESG_OT_add_orbit_cameras(bpy.types.Operator):
+    """Add a ring of cameras around the splats, looking at their centre (for scenes without cameras)"""
+
+    bl_idname = "dresg.add_orbit_cameras"
+    bl_label = "Add Orbit Cameras"
+    bl_options = {"REGISTER", "UNDO"}
+
+    count: bpy.props.IntProperty(name="Cameras", min=1, max=256, default=12)
+    elevation: bpy.props.FloatProperty(name="Elevation", description="Degrees", min=-89.0, max=89.0, default=20.0)
+    fov: bpy.props.FloatProperty(
+        name="Field of View", description="Horizontal, degrees", min=5.0, max=170.0, default=50.0
+    )
+
+    @classmethod
+    def poll(cls, context):
+        return _splat_poll(cls, context)
+
+    def invoke(self, context, event):
+        settings = context.scene.dresg
+        self.count, self.elevation, self.fov = settings.orbit_count, settings.orbit_elevation, settings.orbit_fov
+        return self.execute(context)
+
+    def execute(self, context):
+        from ..dresg_addon.orbit import orbit_cameras
+        from ..dresg_addon.splat_mesh import local_up
+
+        obj, scene = context.active_object, context.scene
+        width, height = blender_camera.render_size(_render_params(scene))
+        try:
+            cameras = orbit_cameras(
+                scene_from_object(obj),
+                self.count,
+                width=width,
+                height=height,
+                fov_deg=self.fov,
+                elevation_deg=self.elevation,
+                up=local_up(np.array(obj.matrix_world)),
+            )
+            objects = add_camera_objects(context, obj, cameras)
+        except DresgError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        if scene.camera is None:
+            scene.camera = objects[0]
+        self.report({"INFO"}, f"Added {len(objects)} orbit cameras to '{ORBIT_COLLECTION}'")
+        return {"FINISHED"}
+
+
+def _render_params(scene) -> blender_camera.BlenderCameraParams:
+    render = scene.render
+    return blender_camera.BlenderCameraParams(
+        resolution_x=render.resolution_x,
+        resolution_y=render.resolution_y,
+        resolution_percentage=render.resolution_percentage,
+    )
+
+
+class DRESG_OT_tick_views(bpy.types.Operator):
+    """Tick or untick every camera of the Views list"""
+
+    bl_idname = "dresg.tick_views"
+    bl_label = "Tick Views"
+    bl_options = {"REGISTER", "UNDO", "INTERNAL"}
+
+    use: bpy.props.BoolProperty(name="Use", default=True)
+
+    def execute(self, context):
+        for camera_object in scene_cameras(context.scene):
+            camera_object.dresg_view.use = self.use
+        return {"FINISHED"}
+
+
+classes = (DRESG_OT_select_views, DRESG_OT_add_orbit_cameras, DRESG_OT_tick_views)

@@ -1,0 +1,126 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Stylize a Gaussian splat scene without the Blender interface, through the add-on's operators.
+
+    blender -b [scene.blend] -P scripts/stylize_headless.py -- --ply IN.ply --style STYLE.jpg --out OUT.ply [options]
+    python scripts/stylize_headless.py --ply IN.ply --style STYLE.jpg --out OUT.ply [--blend scene.blend] [options]
+
+The second form needs the ``bpy`` module. With a .blend, its cameras are the views (the ticked ones,
+or all of them); without cameras, an orbit ring is added around the splats. Background mode runs the
+optimizer synchronously and prints its progress. Exit code 0 on success, 1 on a bad command line,
+2 when an operator fails (its message is printed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = "stylize_gaussians"
+OVERRIDES = {  # command-line option -> panel setting
+    "stages": "stages",
+    "fit_steps": "fit_steps",
+    "post_steps": "post_steps",
+    "width": "proposal_width",
+    "height": "proposal_height",
+    "content_weight": "content_weight",
+    "schedule": "schedule",
+    "geometry": "optimize_geometry",
+    "max_views": "max_views",
+    "render_scale": "render_scale",
+    "seed": "seed",
+}
+
+
+def load_addon(package: str = PACKAGE):
+    """This checkout's add-on as package ``package``, registered unless an installed copy already is."""
+    import bpy
+
+    module = sys.modules.get(package)
+    if module is None:
+        spec = importlib.util.spec_from_file_location(
+            package, REPO / "__init__.py", submodule_search_locations=[str(REPO)]
+        )
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[package] = module
+        spec.loader.exec_module(module)
+    if not hasattr(bpy.types, "DRESG_OT_stylize"):
+        module.register()
+    return module
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="stylize_headless.py", description="Stylize a Gaussian splat scene after a style image (DReSG)."
+    )
+    parser.add_argument("--ply", required=True, help="input scene (.ply, .splat, compressed .ply)")
+    parser.add_argument("--style", required=True, help="style image")
+    parser.add_argument("--out", required=True, help="output graphdeco .ply")
+    parser.add_argument("--blend", help="a .blend whose cameras to use (python form; Blender takes it before -P)")
+    parser.add_argument("--preset", default="preview", help="settings preset (paper, preview)")
+    parser.add_argument("--proposal", choices=("patch", "sd15"), default="patch")
+    parser.add_argument("--model-path", default="", help="SD1.5 diffusers folder or .safetensors (sd15)")
+    parser.add_argument("--dino-path", default="", help="local DINOv2 weights for the feature loss")
+    parser.add_argument("--axes", choices=("opencv", "none"), default="opencv", help="frame of the input file")
+    parser.add_argument("--orbit", type=int, default=12, help="orbit cameras to add when there are none")
+    parser.add_argument("--stages", type=int)
+    parser.add_argument("--fit-steps", type=int)
+    parser.add_argument("--post-steps", type=int)
+    parser.add_argument("--width", type=int, help="proposal width")
+    parser.add_argument("--height", type=int, help="proposal height")
+    parser.add_argument("--content-weight", type=float)
+    parser.add_argument("--schedule")
+    parser.add_argument("--geometry", action=argparse.BooleanOptionalAction, help="optimise geometry offsets")
+    parser.add_argument("--max-views", type=int)
+    parser.add_argument("--render-scale", type=float)
+    parser.add_argument("--seed", type=int)
+    return parser.parse_args(argv)
+
+
+def script_arguments(argv: list[str]) -> list[str]:
+    """Arguments meant for this script: after ``--`` under Blender, all but the program otherwise."""
+    return argv[argv.index("--") + 1 :] if "--" in argv else argv[1:]
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = parse_args(script_arguments(sys.argv) if argv is None else argv)
+    except SystemExit as exit_:
+        return 1 if exit_.code else 0
+    import bpy
+
+    try:
+        if args.blend:
+            bpy.ops.wm.open_mainfile(filepath=args.blend)
+        load_addon()
+        scene = bpy.context.scene
+        bpy.ops.dresg.import_splats(
+            filepath=args.ply, axis_conversion="OPENCV_TO_BLENDER" if args.axes == "opencv" else "NONE"
+        )
+        settings = scene.dresg
+        settings.preset = args.preset
+        for option, field in OVERRIDES.items():
+            value = getattr(args, option)
+            if value is not None:
+                setattr(settings, field, value)
+        settings.proposal = args.proposal
+        settings.style_source, settings.style_path = "FILE", args.style
+        cameras = [obj for obj in scene.objects if obj.type == "CAMERA"]
+        if cameras:
+            print(f"[stylize] using the .blend's cameras: {', '.join(sorted(obj.name for obj in cameras))}")
+        else:
+            bpy.ops.dresg.add_orbit_cameras(count=args.orbit)
+            print(f"[stylize] no cameras: added {args.orbit} orbit cameras")
+        bpy.ops.dresg.stylize(model_path=args.model_path, dino_path=args.dino_path)
+        bpy.ops.dresg.export_splats(filepath=args.out)
+    except RuntimeError as error:  # an operator reported an error (its message says what)
+        print(f"error: {str(error).strip()}", file=sys.stderr)
+        return 2
+    print(f"[stylize] wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,234 @@
+"""Stylize Gaussians end to end in the bpy module: background runs, the worker thread, cancel, restore,
+view selection and the headless script. Small settings (tiny renders, few steps) keep it CPU-fast."""
+
+import importlib.util
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dresg_addon import splat_mesh as sm
+from dresg_addon.imageio import read_image
+from dresg_addon.io import read_scene
+
+bpy = pytest.importorskip("bpy")
+pytest.importorskip("torch")
+if importlib.util.find_spec("dresg_addon.pipeline") is None:
+    pytest.skip("needs dresg_addon/pipeline.py (stylize, select_active_views)", allow_module_level=True)
+pytestmark = pytest.mark.blender
+REPO = Path(__file__).resolve().parents[1]
+SETTINGS = {  # a quick run: 2 stages of 3 fit steps on 64x48 renders of 2 views
+    "stages": 2,
+    "fit_steps": 3,
+    "post_steps": 2,
+    "proposal_width": 64,
+    "proposal_height": 48,
+    "max_views": 2,
+    "render_scale": 0.5,
+    "optimize_geometry": False,
+}
+
+
+def _headless():
+    spec = importlib.util.spec_from_file_location("dresg_stylize_headless", REPO / "scripts" / "stylize_headless.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture
+def addon():
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    module = _headless().load_addon()
+    yield module
+    module.operators.job.set_current(None)
+    module.unregister()
+
+
+@pytest.fixture
+def luigi(addon, shared_data):
+    """Luigi imported, 2 orbit cameras at 128x96, the quick settings and a style image."""
+    path = shared_data("scenes/luigi.ply")
+    bpy.ops.dresg.import_splats(filepath=str(path))
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 128, 96, 100
+    bpy.ops.dresg.add_orbit_cameras(count=2, elevation=10.0)
+    settings = scene.dresg
+    for name, value in SETTINGS.items():
+        setattr(settings, name, value)
+    settings.style_path = str(shared_data("styles/starry_night.jpg"))
+    return bpy.context.active_object
+
+
+def attribute(obj, name):
+    from stylize_gaussians.operators.splat_object import read_attribute
+
+    return read_attribute(obj.data, name)
+
+
+def render_mean_colour(path) -> np.ndarray:
+    scene = bpy.context.scene
+    scene.camera = bpy.data.objects["orbit_000"]
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.display.shading.light = "FLAT"
+    scene.display.shading.color_type = "VERTEX"
+    scene.view_settings.view_transform = "Standard"
+    scene.render.film_transparent = True
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+    image = read_image(path)
+    inside = image[..., 3] > 0.999
+    assert inside.sum() > 300
+    return image[inside][:, :3].mean(0)
+
+
+def weighted_mean_colour(obj) -> np.ndarray:
+    rgb = np.clip(0.5 + sm.SH_C0 * attribute(obj, sm.SH_DC), 0, 1)
+    opacity = attribute(obj, sm.OPACITY)[:, None]
+    return (rgb * opacity).sum(0) / opacity.sum()
+
+
+def test_background_stylize_changes_colours_only(luigi, tmp_path):
+    obj = luigi
+    before = {name: attribute(obj, name) for name in (sm.SH_DC, sm.OPACITY, sm.LOG_SCALE, sm.QUAT)}
+    positions_before = np.array([v.co for v in obj.data.vertices])
+    render_before = render_mean_colour(tmp_path / "before.png")
+
+    assert bpy.app.background
+    assert bpy.ops.dresg.stylize() == {"FINISHED"}  # background mode: synchronous
+    from stylize_gaussians.operators import job
+
+    run = job.current()
+    assert run.state == "DONE" and run.stages_applied >= 1
+    sh_dc = attribute(obj, sm.SH_DC)
+    assert np.abs(sh_dc - before[sm.SH_DC]).mean() > 1e-3
+    assert np.isfinite(sh_dc).all()
+    for name in (sm.OPACITY, sm.LOG_SCALE, sm.QUAT):
+        np.testing.assert_array_equal(attribute(obj, name), before[name])
+    np.testing.assert_array_equal(np.array([v.co for v in obj.data.vertices]), positions_before)
+    np.testing.assert_array_equal(attribute(obj, sm.SH_DC_ORIGINAL), before[sm.SH_DC])
+    np.testing.assert_allclose(attribute(obj, sm.COLOR), sm.display_colors(sh_dc, before[sm.OPACITY]), atol=1e-6)
+    assert "dresg_stylize_settings" in obj
+
+    # The viewport look follows: the rendered splats move to the new mean colour.
+    render_after = render_mean_colour(tmp_path / "after.png")
+    np.testing.assert_allclose(render_after, weighted_mean_colour(obj), atol=0.06)
+    assert np.abs(render_after - render_before).max() > 0.01
+
+    # Export carries the stylized colours; the per-view images of the last stage open as images.
+    bpy.ops.dresg.export_splats(filepath=str(tmp_path / "out.ply"))
+    exported = read_scene(tmp_path / "out.ply")
+    np.testing.assert_array_equal(exported.sh_dc, sh_dc)
+    assert bpy.ops.dresg.open_view_images() == {"FINISHED"}
+    for view, kinds in run.images.items():
+        for kind, array in kinds.items():
+            image = bpy.data.images[f"DReSG {view} {kind}"]
+            assert tuple(image.size) == (array.shape[1], array.shape[0])
+
+
+def test_threaded_run_cancels_and_restores(luigi):
+    from stylize_gaussians.operators import job
+    from stylize_gaussians.operators.splat_object import scene_from_object
+    from stylize_gaussians.operators.stylize import prepare_job
+
+    obj = luigi
+    original = scene_from_object(obj)
+    settings = bpy.context.scene.dresg
+    settings.stages, settings.optimize_geometry = 6, True
+    run, _ = prepare_job(bpy.context)
+    job.set_current(run)
+    run.start()
+    deadline = time.monotonic() + 300
+    while run.stages_applied < 1 and run.running and time.monotonic() < deadline:
+        run.poll()
+        time.sleep(0.05)
+    assert run.stages_applied >= 1, run.error
+    run.cancel()
+    cancelled_at = time.monotonic()
+    while not run.poll():
+        time.sleep(0.02)
+    run.join(30)
+    print(f"stopped {time.monotonic() - cancelled_at:.2f} s after cancel")
+    assert run.state == "CANCELLED" and run.stages_applied < 6
+
+    # One consistent stage: display colours match the stored coefficients, geometry within its bounds.
+    sh_dc, opacity = attribute(obj, sm.SH_DC), attribute(obj, sm.OPACITY)
+    np.testing.assert_allclose(attribute(obj, sm.COLOR), sm.display_colors(sh_dc, opacity), atol=1e-6)
+    moved = np.array([v.co for v in obj.data.vertices])
+    assert np.abs(moved - original.means).max() <= run.config.mean_bound + 1e-5
+    np.testing.assert_array_equal(attribute(obj, sm.MEANS_ORIGINAL), original.means)
+    np.testing.assert_array_equal(opacity, sm.sigmoid(original.opacity_logits))
+
+    assert bpy.ops.dresg.restore_colors() == {"FINISHED"}
+    restored = scene_from_object(obj)
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh_dc"):
+        np.testing.assert_array_equal(getattr(restored, name), getattr(original, name), err_msg=name)
+
+
+def test_worker_errors_reach_the_job_and_the_report(luigi, tmp_path):
+    from stylize_gaussians.operators import job
+
+    settings = bpy.context.scene.dresg
+    settings.proposal = "sd15"
+    missing = tmp_path / "no-model"
+    with pytest.raises(RuntimeError, match="no-model"):
+        bpy.ops.dresg.stylize(model_path=str(missing))
+    assert job.current().state == "ERROR" and "no-model" in job.current().error
+    np.testing.assert_array_equal(attribute(luigi, sm.SH_DC), attribute(luigi, sm.SH_DC_ORIGINAL))
+
+
+def test_select_views_by_coverage_ticks_the_engine_choice(luigi):
+    from stylize_gaussians.dresg_addon.pipeline import select_active_views
+    from stylize_gaussians.operators.splat_object import scene_from_object
+    from stylize_gaussians.operators.views import engine_cameras, scene_cameras
+
+    bpy.ops.dresg.add_orbit_cameras(count=4, elevation=40.0)
+    scene = bpy.context.scene
+    objects = scene_cameras(scene)
+    assert len(objects) == 6
+    assert bpy.ops.dresg.select_views() == {"FINISHED"}
+    expected = select_active_views(
+        scene_from_object(luigi), engine_cameras(scene, luigi, objects), scene.dresg.config()
+    )
+    assert [obj.dresg_view.use for obj in objects] == [i in expected.indices for i in range(len(objects))]
+    assert [obj.dresg_view.pick for obj in objects] == [
+        expected.indices.index(i) + 1 if i in expected.indices else 0 for i in range(len(objects))
+    ]
+    np.testing.assert_allclose([obj.dresg_view.coverage for obj in objects], expected.per_view_coverage, rtol=1e-6)
+
+
+def test_headless_script_with_a_blend_file(addon, shared_data, tmp_path):
+    # A .blend with two cameras framing Luigi (imported with the OpenCV conversion, as the script does).
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y = 128, 96
+    bpy.ops.dresg.import_splats(filepath=str(shared_data("scenes/luigi.ply")))
+    bpy.ops.dresg.add_orbit_cameras(count=2)
+    bpy.data.objects.remove(bpy.context.active_object)  # the script imports the splats itself
+    blend = tmp_path / "cameras.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+
+    out = tmp_path / "stylized.ply"
+    command = [sys.executable, str(REPO / "scripts" / "stylize_headless.py"), "--blend", str(blend)]
+    command += ["--ply", str(shared_data("scenes/luigi.ply")), "--style", str(shared_data("styles/the_scream.jpg"))]
+    command += ["--out", str(out), "--stages", "1", "--fit-steps", "2", "--post-steps", "1", "--width", "64"]
+    command += ["--height", "48", "--max-views", "2", "--render-scale", "0.5", "--no-geometry"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "using the .blend's cameras: orbit_000, orbit_001" in result.stdout
+    assert "[stylize]" in result.stdout  # printed progress
+    source, stylized = read_scene(shared_data("scenes/luigi.ply")), read_scene(out)
+    np.testing.assert_array_equal(stylized.means, source.means)
+    np.testing.assert_array_equal(stylized.opacity_logits, source.opacity_logits)
+    assert np.abs(stylized.sh_dc - source.sh_dc).mean() > 1e-3
+
+    bad = subprocess.run(
+        [sys.executable, str(REPO / "scripts" / "stylize_headless.py"), "--ply", str(tmp_path / "nope.ply")]
+        + ["--style", "x.jpg", "--out", str(tmp_path / "o.ply")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert bad.returncode == 2 and "nope.ply" in bad.stderr

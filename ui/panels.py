@@ -1,0 +1,213 @@
+"""The "Gaussians" sidebar tab of the 3D view: the Stylize Gaussians panel and its sub-panels."""
+
+import textwrap
+
+import bpy
+
+from ..operators import dependencies, job
+from ..operators.splat_object import (
+    INPUT_MAX_SPLATS,
+    INPUT_MIN_OPACITY,
+    INPUT_SCALE,
+    INPUT_SHAPE,
+    INPUT_SOLID,
+    is_splat_object,
+    splat_modifier,
+)
+from ..operators.stylize import addon_preferences
+from ..operators.views import scene_cameras
+
+CATEGORY = "Gaussians"
+
+
+def _wrapped(layout, text: str, width: int = 48, icon: str = "NONE") -> None:
+    column = layout.column(align=True)
+    for index, line in enumerate(textwrap.wrap(text, width) or [""]):
+        column.label(text=line, icon=icon if index == 0 else "BLANK1")
+
+
+class SplatPanel:
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = CATEGORY
+
+
+class ChildPanel(SplatPanel):
+    bl_parent_id = "DRESG_PT_main"
+
+    @classmethod
+    def poll(cls, context):
+        return is_splat_object(context.active_object)
+
+
+class DRESG_UL_cameras(bpy.types.UIList):
+    """The scene's cameras with a tick each, and the coverage the selection computed."""
+
+    def draw_item(self, context, layout, data, item, icon, active_data, active_property, index=0, flt_flag=0):
+        view = item.dresg_view
+        row = layout.row(align=True)
+        row.prop(view, "use", text="")
+        row.label(text=item.name, icon="CAMERA_DATA")
+        if view.coverage >= 0.0:
+            row.label(text=f"{100.0 * view.coverage:.1f}%" + (f"  #{view.pick}" if view.pick else ""))
+
+    def filter_items(self, context, data, property_name):
+        objects = getattr(data, property_name)
+        flags = [self.bitflag_filter_item if obj.type == "CAMERA" else 0 for obj in objects]
+        if self.filter_name:
+            by_name = bpy.types.UI_UL_list.filter_items_by_name(
+                self.filter_name, self.bitflag_filter_item, objects, "name", reverse=False
+            )
+            flags = [a & b for a, b in zip(flags, by_name)]
+        return flags, bpy.types.UI_UL_list.sort_items_by_name(objects, "name")
+
+
+class DRESG_PT_main(SplatPanel, bpy.types.Panel):
+    bl_idname = "DRESG_PT_main"
+    bl_label = "Stylize Gaussians"
+
+    def draw(self, context):
+        layout = self.layout
+        obj = context.active_object
+        if not is_splat_object(obj):
+            layout.label(text="Select a splat object, or import one:")
+            layout.operator("dresg.import_splats", icon="IMPORT")
+            return
+        mesh = obj.data
+        box = layout.box()
+        box.label(text=f"{obj.name}: {len(mesh.vertices):,} splats", icon="OUTLINER_OB_POINTCLOUD")
+        box.label(text=f"{obj.get('dresg_source_format', '?')}, {obj.get('dresg_axis_conversion', '?')}")
+        if "dresg_stylize_settings" in obj:
+            box.label(text="Stylized", icon="BRUSH_DATA")
+
+        if not dependencies.torch_available():
+            from .preferences import draw_dependencies
+
+            prefs = addon_preferences(context)
+            draw_dependencies(layout, prefs.index_url if prefs is not None else "")
+
+        current = job.current()
+        mine = current is not None and current.concerns(obj)
+        if current is not None and current.running:
+            if not mine:
+                layout.label(text=f"Stylizing '{current.object_name}'", icon="SORTTIME")
+            layout.progress(factor=current.fraction, type="BAR", text=current.text)
+            layout.operator("dresg.cancel_stylize", icon="CANCEL")
+        else:
+            row = layout.row()
+            row.scale_y = 1.5
+            row.operator("dresg.stylize", icon="BRUSH_DATA")
+        if mine and current.state == "ERROR":
+            box = layout.box()
+            box.alert = True
+            _wrapped(box, f"Stylize Gaussians failed: {current.error}", icon="ERROR")
+            box.operator("dresg.dismiss", icon="X")
+        elif mine and not current.running:
+            row = layout.row()
+            row.label(text=current.text, icon="INFO" if current.state == "DONE" else "CANCEL")
+            row.operator("dresg.dismiss", text="", icon="X")
+        if mine and current.images:
+            layout.operator("dresg.open_view_images", icon="IMAGE_DATA")
+        row = layout.row(align=True)
+        row.operator("dresg.restore_colors", icon="LOOP_BACK")
+        row.operator("dresg.export_splats", text="Export", icon="EXPORT")
+
+
+class DRESG_PT_style(ChildPanel, bpy.types.Panel):
+    bl_label = "Style"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        settings = context.scene.dresg
+        layout.prop(settings, "style_source", expand=True)
+        if settings.style_source == "FILE":
+            layout.prop(settings, "style_path")
+        else:
+            layout.template_ID(settings, "style_image", open="image.open")
+        layout.prop(settings, "preset")
+        layout.prop(settings, "proposal")
+        if settings.proposal == "sd15":
+            prefs = addon_preferences(context)
+            if prefs is None or not prefs.sd15_path:
+                layout.label(text="Set the SD1.5 model path in the add-on preferences", icon="ERROR")
+            layout.label(text="Without a GPU a run takes hours", icon="INFO")
+        layout.prop(settings, "stages")
+        layout.prop(settings, "fit_steps")
+        column = layout.column(align=True)
+        column.prop(settings, "proposal_width", text="Resolution X")
+        column.prop(settings, "proposal_height", text="Y")
+        layout.prop(settings, "content_weight")
+        layout.prop(settings, "schedule")
+        layout.prop(settings, "optimize_geometry")
+
+
+class DRESG_PT_style_advanced(ChildPanel, bpy.types.Panel):
+    bl_label = "Advanced"
+    bl_parent_id = "DRESG_PT_style"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        settings = context.scene.dresg
+        for name in ("post_steps", "max_views", "render_scale", "sh_rest", "seed"):
+            layout.prop(settings, name)
+        render = context.scene.render
+        scale = settings.render_scale * render.resolution_percentage / 100.0
+        layout.label(text=f"Fitting at {round(render.resolution_x * scale)} x {round(render.resolution_y * scale)} px")
+
+
+class DRESG_PT_views(ChildPanel, bpy.types.Panel):
+    bl_label = "Views"
+
+    def draw(self, context):
+        layout = self.layout
+        scene = context.scene
+        settings = scene.dresg
+        cameras = scene_cameras(scene)
+        if cameras:
+            layout.template_list("DRESG_UL_cameras", "", scene, "objects", settings, "camera_index", rows=4)
+            row = layout.row(align=True)
+            row.operator("dresg.tick_views", text="All").use = True
+            row.operator("dresg.tick_views", text="None").use = False
+            ticked = sum(obj.dresg_view.use for obj in cameras)
+            layout.label(text=f"{ticked} of {len(cameras)} ticked" if ticked else "None ticked: all cameras are used")
+            layout.operator("dresg.select_views", icon="VIEWZOOM")
+        else:
+            layout.label(text="No cameras: stylizing uses an orbit ring", icon="INFO")
+        column = layout.column(align=True)
+        row = column.row(align=True)
+        row.prop(settings, "orbit_count")
+        row.prop(settings, "orbit_elevation")
+        column.prop(settings, "orbit_fov")
+        column.operator("dresg.add_orbit_cameras", icon="CAMERA_DATA")
+
+
+class DRESG_PT_display(ChildPanel, bpy.types.Panel):
+    bl_label = "Display"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        modifier = splat_modifier(context.active_object)
+        if modifier is None:
+            layout.label(text="The splat preview modifier was removed", icon="ERROR")
+            return
+        items = modifier.node_group.interface.items_tree
+        for name in (INPUT_SHAPE, INPUT_SCALE, INPUT_MIN_OPACITY, INPUT_MAX_SPLATS, INPUT_SOLID):
+            layout.prop(modifier, f'["{items[name].identifier}"]', text=name)
+        shading = context.space_data.shading if context.space_data and context.space_data.type == "VIEW_3D" else None
+        if shading is not None and shading.type == "SOLID":
+            layout.prop(shading, "color_type", text="Solid Colour")
+
+
+classes = (
+    DRESG_UL_cameras,
+    DRESG_PT_main,
+    DRESG_PT_style,
+    DRESG_PT_style_advanced,
+    DRESG_PT_views,
+    DRESG_PT_display,
+)
