@@ -15,6 +15,7 @@ Pipeline for one view (one small function per stage):
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -415,6 +416,11 @@ class ColorOnlyRenderer:
         self._build(n)
 
     def _build(self, n_columns: int) -> None:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+            self._build_matrices(n_columns)
+
+    def _build_matrices(self, n_columns: int) -> None:
         n_pix = self.shape[0] * self.shape[1]
         crow = torch.zeros(n_pix + 1, dtype=torch.long, device=self._pixel.device)
         crow[1:] = torch.cumsum(torch.bincount(self._pixel, minlength=n_pix), 0)
