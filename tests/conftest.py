@@ -26,3 +26,19 @@ def shared_file(relative: str) -> Path:
 @pytest.fixture
 def shared_data():
     return shared_file
+
+
+@pytest.fixture
+def addon():
+    """The extension registered in a clean, empty Blender file (bpy module); unregistered afterwards."""
+    import importlib.util
+
+    bpy = pytest.importorskip("bpy")
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    spec = importlib.util.spec_from_file_location("dresg_stylize_headless", REPO / "scripts" / "stylize_headless.py")
+    headless = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(headless)
+    module = headless.load_addon()
+    yield module
+    module.operators.job.set_current(None)
+    module.unregister()

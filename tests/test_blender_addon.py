@@ -1,6 +1,5 @@
 """The extension as Blender sees it: packaging, registration, menus (F3), panels and preferences."""
 
-import importlib.util
 import os
 import subprocess
 import sys
@@ -23,21 +22,6 @@ F3_LABELS = {
     "dresg.add_orbit_cameras": "Add Orbit Cameras",
     "dresg.restore_colors": "Restore Original Colours",
 }
-
-
-def _headless():
-    spec = importlib.util.spec_from_file_location("dresg_stylize_headless", REPO / "scripts" / "stylize_headless.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-@pytest.fixture
-def addon():
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    module = _headless().load_addon()
-    yield module
-    module.unregister()
 
 
 def _operator_class(idname):

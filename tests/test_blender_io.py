@@ -1,6 +1,5 @@
 """Import / export / restore / preview of splat objects, with the real bpy module (headless)."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -16,21 +15,6 @@ bpy = pytest.importorskip("bpy")
 pytestmark = pytest.mark.blender
 REPO = Path(__file__).resolve().parents[1]
 SCENES = ["luigi.ply", "graphdeco_it7000_sh3.ply", "bonsai-7k-mini.splat", "bonsai-7k-mini.compressed.ply"]
-
-
-def _headless():
-    spec = importlib.util.spec_from_file_location("dresg_stylize_headless", REPO / "scripts" / "stylize_headless.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-@pytest.fixture
-def addon():
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    module = _headless().load_addon()
-    yield module
-    module.unregister()
 
 
 def import_splats(path, **options):

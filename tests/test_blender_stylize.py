@@ -32,22 +32,6 @@ SETTINGS = {  # a quick run: 2 stages of 3 fit steps on 64x48 renders of 2 views
 }
 
 
-def _headless():
-    spec = importlib.util.spec_from_file_location("dresg_stylize_headless", REPO / "scripts" / "stylize_headless.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-@pytest.fixture
-def addon():
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    module = _headless().load_addon()
-    yield module
-    module.operators.job.set_current(None)
-    module.unregister()
-
-
 @pytest.fixture
 def luigi(addon, shared_data):
     """Luigi imported, 2 orbit cameras at 128x96, the quick settings and a style image."""
