@@ -182,7 +182,13 @@ def test_extreme_scales(log_scale):
 def test_anisotropy_1e6():
     rng = np.random.default_rng(3)
     log_scales = np.stack([np.full(20, np.log(1.0)), np.full(20, np.log(1e-6)), np.full(20, np.log(1e-3))], -1)
-    scene = (rng.normal(size=(20, 3)) * 0.3, rng.normal(size=(20, 4)), log_scales, np.full(20, 3.0), rng.uniform(size=(20, 3)))
+    scene = (
+        rng.normal(size=(20, 3)) * 0.3,
+        rng.normal(size=(20, 4)),
+        log_scales,
+        np.full(20, 3.0),
+        rng.uniform(size=(20, 3)),
+    )
     out, _ = render_with_grads(scene, camera())
     assert_matches_reference(scene, camera(), atol=1e-5)
     assert out.n_pairs > 0
@@ -212,7 +218,9 @@ def test_ten_thousand_gaussians_on_one_pixel():
 
 def test_empty_and_transparent_scenes():
     cam = camera()
-    empty = render_with_grads((np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3))), cam)[0]
+    empty = render_with_grads(
+        (np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3))), cam
+    )[0]
     assert empty.alpha.abs().max() == 0 and empty.n_pairs == 0
     scene = random_scene(30, 0)
     transparent = render_with_grads((*scene[:3], np.full(30, -20.0), scene[4]), cam)[0]
