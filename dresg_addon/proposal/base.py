@@ -1,8 +1,10 @@
 """The proposal interface and the attention guidance energy shared by every backend (Sec. 4.1).
 
-A backend maps an image to a state (a latent for SD1.5, the image itself for the patch backend), gives
-self-attention Q/K/V features of a state at a scheduler timestep, and decodes a state to an image.
-The energy (Eqs. 7-10) and the optimisation loop (one fresh Adam step per timestep) live here, once.
+A backend maps an image to a state (a VAE latent for SD1.5, a smoothed opponent-colour logit image for
+the patch backend), gives self-attention Q/K/V features of a state at a scheduler timestep, and
+decodes a state to an image.
+The energy (Eqs. 6-9), a backend's optional extra term (``extra_energy``) and the optimisation loop
+(one fresh Adam step per timestep) live here, once.
 """
 
 from __future__ import annotations
@@ -80,6 +82,13 @@ class ProposalBackend(ABC):
     def features(self, state: torch.Tensor, timestep: int) -> AttentionFeatures:
         """Self-attention features of ``state`` at scheduler ``timestep`` (differentiable in ``state``)."""
 
+    def extra_energy(self, state: torch.Tensor, style_image: torch.Tensor, timestep: int) -> torch.Tensor | None:
+        """A backend's own energy term added to E_attn (differentiable in ``state``); None when it has none.
+
+        The SD1.5 backend has none; the patch backend adds a patch sliced-Wasserstein term there.
+        """
+        return None
+
     def reference_features(self, image: torch.Tensor, timestep: int) -> AttentionFeatures:
         """Features of a fixed reference image (style or content), without gradients."""
         with torch.no_grad():
@@ -105,6 +114,9 @@ def optimize_proposal(
         state.requires_grad_(True)
         optimizer = torch.optim.Adam([state], lr=backend.learning_rate)
         energy = attention_energy(backend.features(state, timestep), style, content, terms)
+        extra = backend.extra_energy(state, style_image, timestep)
+        if extra is not None:
+            energy = energy + extra
         optimizer.zero_grad(set_to_none=True)
         energy.backward()
         if not torch.isfinite(state.grad).all():
