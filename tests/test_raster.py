@@ -69,10 +69,12 @@ def test_bands_tiles_and_float32_agree():
     exact = render(*tensors(scene), cam)
     banded = render(*tensors(scene), cam, RasterSettings(band_pairs=300))
     tiled = render(*tensors(scene), cam, RasterSettings(tile_size=8))
-    single = render(*tensors(scene), cam, RasterSettings(dtype=torch.float32))
+    single = render(*tensors(scene), cam, RasterSettings(dtype=torch.float32, accumulate=torch.float32))
+    mixed = render(*tensors(scene), cam, RasterSettings(dtype=torch.float32))
     assert torch.allclose(banded.rgb, exact.rgb, atol=1e-12)
     assert torch.allclose(tiled.rgb, exact.rgb, atol=1e-12)
     assert (single.rgb - exact.rgb).abs().max() < 1e-4
+    assert (mixed.rgb - exact.rgb).abs().max() < 1e-5  # float32 samples, float64 scans
 
 
 def test_speed_knobs_change_what_they_say():

@@ -150,7 +150,8 @@ def parse_up(text: str) -> tuple[float, float, float]:
 
 
 def output_stems(cameras: list[Camera]) -> list[str]:
-    """File name stems, one per camera: the image name without extension, separators replaced by ``_``.
+    """File name stems, one per camera: the image name without extension, path separators (and characters
+    file systems refuse) replaced by ``_``.
 
     Unnamed cameras get ``view_000``...; repeated names get ``_2``, ``_3``... so no output overwrites another.
     """
@@ -158,7 +159,8 @@ def output_stems(cameras: list[Camera]) -> list[str]:
     taken: set[str] = set()
     for index, camera in enumerate(cameras):
         stem = _EXTENSION.sub("", camera.name.strip())
-        stem = re.sub(r"[/\\\x00-\x1f]", "_", stem).strip(" .") or f"view_{index:03d}"
+        # Separators, control characters and what Windows forbids in names all become "_".
+        stem = re.sub(r'[/\\\x00-\x1f<>:"|?*]', "_", stem).strip(" .") or f"view_{index:03d}"
         unique, count = stem, 1
         while unique.lower() in taken:  # case-insensitive file systems would overwrite too
             count += 1

@@ -34,7 +34,8 @@ class RasterSettings:
     near: float = 0.01
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # Speed knobs; the defaults are the exact definition.
-    dtype: torch.dtype = torch.float64  # per-sample arithmetic and accumulation
+    dtype: torch.dtype = torch.float64  # per-sample arithmetic
+    accumulate: torch.dtype = torch.float64  # the per-pixel scans (float32 scans cancel over long bands)
     tile_size: int = 0  # 0: exact per-row spans; > 0: every pixel of every tile the bounding box touches
     max_per_pixel: int = 0  # 0: no cap; > 0: at most this many samples per pixel (front-most)
     truncation_sigma: float = 0.0  # 0: none; > 0: also cut at this many standard deviations
@@ -193,13 +194,14 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conic, opac, colors, g, pixel, raw, depth, meta):
-        r0, width, n_pix, background, dtype, cap = meta
+        r0, width, n_pix, background, dtype, accumulate, cap = meta
         alpha = torch.clamp_max(raw, ALPHA_MAX)
         unclamped = raw < ALPHA_MAX
         log1m = torch.log1p(-alpha)
         start, end = _segments(pixel)
-        excl = torch.cumsum(log1m, 0) - log1m
-        log_t = excl - _take(excl, start)
+        wide = log1m.to(accumulate)
+        excl = torch.cumsum(wide, 0) - wide
+        log_t = (excl - _take(excl, start)).to(dtype)
         include = (log_t + log1m) >= LOG_T_MIN
         if cap > 0:
             include &= (torch.arange(pixel.numel(), device=pixel.device) - start) < cap
@@ -231,7 +233,7 @@ class _Composite(torch.autograd.Function):
         means2d, conic, opac, colors, g, pixel, alpha, unclamped, t_before, weight, t_final, start, end = (
             ctx.saved_tensors
         )
-        r0, width, n_pix, background, dtype, _ = ctx.meta
+        r0, width, n_pix, background, dtype, accumulate, _ = ctx.meta
         gr = grad_rgb.to(dtype)
         bg = torch.tensor(background, dtype=dtype, device=gr.device)
         tail = gr @ bg
@@ -240,8 +242,8 @@ class _Composite(torch.autograd.Function):
         tail = t_final * tail  # [n_pix]: d/dT_final contribution, times T_final
         gr_pair = _take(gr, pixel)  # [P, 3]
         dot = _rowdot(gr_pair, _take(colors.to(dtype), g))  # G_p . c_k
-        cs = torch.cumsum(weight * dot, 0)
-        behind = _take(cs, end) - cs  # sum_{j>k} T_j a_j (G . c_j)
+        cs = torch.cumsum((weight * dot).to(accumulate), 0)
+        behind = (_take(cs, end) - cs).to(dtype)  # sum_{j>k} T_j a_j (G . c_j)
         included = weight > 0
         d_alpha = torch.where(
             included, t_before * dot - (behind + _take(tail, pixel)) / (1.0 - alpha), torch.zeros((), dtype=dtype)
@@ -341,7 +343,7 @@ def render(
                 means2d.detach()[in_band], cov2d[in_band], conic.detach()[in_band], opac.detach()[in_band],
                 r2[in_band], y0[in_band], y1[in_band], r0, r1, width, settings,
             )  # fmt: skip
-        meta = (r0, width, n_pix, tuple(settings.background), settings.dtype, cap)
+        meta = (r0, width, n_pix, tuple(settings.background), settings.dtype, settings.accumulate, cap)
         rgb_b, t_b, depth_b, weight = _Composite.apply(
             means2d[in_band], conic[in_band], opac[in_band], cols[in_band], g, pixel, raw, depth[in_band], meta
         )

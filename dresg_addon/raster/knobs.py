@@ -1,0 +1,39 @@
+"""The rasterizer's speed knobs as (name, value) pairs, for the error-against-run-time tables.
+
+Each entry changes one thing of the exact default :class:`RasterSettings`; the benchmark and the report
+both measure these, so a user sees what each knob costs in error and in time.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .rasterizer import RasterSettings
+
+SPEED_KNOBS = (
+    ("default (exact)", None),
+    ("tile_size", 8),
+    ("tile_size", 16),
+    ("tile_size", 32),
+    ("max_per_pixel", 64),
+    ("max_per_pixel", 32),
+    ("max_per_pixel", 16),
+    ("max_per_pixel", 8),
+    ("truncation_sigma", 3.0),
+    ("truncation_sigma", 2.0),
+    ("dtype", "float32"),  # float32 per-sample arithmetic, float64 scans
+    ("dtype+accumulate", "float32"),  # everything in float32
+    ("band_pairs", 500_000),
+    ("band_pairs", 8_000_000),
+)
+
+
+def knob_settings(knob: str, value) -> RasterSettings:
+    """The exact default with one knob changed; dtype values are given by name ("float32")."""
+    if value is None:
+        return RasterSettings()
+    if knob == "dtype":
+        return RasterSettings(dtype=getattr(torch, value))
+    if knob == "dtype+accumulate":
+        return RasterSettings(dtype=getattr(torch, value), accumulate=getattr(torch, value))
+    return RasterSettings(**{knob: value})
