@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "select_views",
     "stylize",
     "demo",
+    "report",
 )
 
 
