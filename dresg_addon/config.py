@@ -1,10 +1,21 @@
 """The method's settings as one typed dataclass with the paper's defaults; presets are instances.
 
 The CLI and the Blender panel are thin layers over :class:`StylizeConfig`.
+
+Lengths. The paper's geometry numbers (mean-offset lr 1e-3, bound +-0.05; REFERENCE.md Sec. 2) are
+absolute lengths in its scenes' units, where a scene is about a unit to a few units across. Here the
+mean-offset ``geometry_lr`` and ``mean_bound`` are relative to the scene extent (the robust radius of
+the fitted Gaussians' centres, :func:`dresg_addon.optim.scene_extent`), with a reference extent of 1:
+the optimiser uses ``geometry_lr x extent`` and ``mean_bound x extent`` for the mean offsets, so a scene
+of extent 1 gets the paper's numbers unchanged and a scene scaled by s moves its splats s times as far
+(as 3DGS scales its position lr by the camera extent). ``scene_extent > 0`` fixes the extent instead of
+measuring it (``scene_extent=1`` gives the paper's absolute numbers on any scene). Log-scale and
+quaternion offsets are scale-free and use their numbers as they are.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields, replace
 
 from .errors import ConfigError
@@ -37,9 +48,9 @@ class StylizeConfig:
     fit_steps: int = 30
     post_steps: int = 50  # after covariance colour transfer
     color_lr: float = 0.05
-    geometry_lr: float = 1e-3
+    geometry_lr: float = 1e-3  # mean offsets: x the scene extent (see the module docstring)
     optimize_geometry: bool = True
-    mean_bound: float = 0.05
+    mean_bound: float = 0.05  # x the scene extent
     log_scale_bound: float = 0.05
     quat_bound: float = 0.02
     pcgrad: bool = True  # ablation "w/o colour-gradient projection" when False
@@ -49,6 +60,7 @@ class StylizeConfig:
     lambda_feature: float = 0.01
     dino_path: str = ""  # local DINO weights for the feature loss; empty: patch features
     render_scale: float = 1.0  # render resolution relative to the cameras' own
+    scene_extent: float = 0.0  # the length mean offsets are relative to; 0: measured (optim.scene_extent)
     # View selection (Sec. 4.3)
     max_views: int = 0  # 0: no cap
     w_min: float = 1e-4
@@ -74,6 +86,7 @@ class StylizeConfig:
             (self.render_scale > 0, "render_scale must be > 0"),
             (0 < self.rho <= 1, "rho must be in (0, 1]"),
             (self.near > 0, "near must be > 0"),
+            (self.scene_extent >= 0 and math.isfinite(self.scene_extent), "scene_extent must be >= 0 (0: measured)"),
         ]
         for ok, message in checks:
             if not ok:

@@ -178,6 +178,7 @@ def write_image(
         data = np.round(np.clip(pixels, 0.0, 1.0) * scale).astype(dtype)
     else:
         type_name, data = "float", pixels
+    data = np.ascontiguousarray(data)  # OIIO rejects strided channels (e.g. a transposed tensor's view)
     spec = oiio.ImageSpec(width, height, channels, type_name)
     spec.alpha_channel = 3 if channels == 4 else -1
     if channels == 4:

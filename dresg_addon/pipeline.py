@@ -307,6 +307,7 @@ def stylize(
         check_finite_gradients,
         make_fit_optimizer,
         project_geometry_offsets_,
+        scene_extent,
     )
     from .pcgrad import pcgrad_fuse
     from .proposal import EnergyTerms, make_backend, optimize_proposal
@@ -394,10 +395,21 @@ def stylize(
     renderer = _Views(scene, active, seen, config, fast)
     features = _feature_extractor(config, say)
     weights = FitLossWeights(dssim=config.lambda_ssim, tv=config.lambda_tv, feature=config.lambda_feature)
-    bounds = GeometryBounds(config.mean_bound, config.log_scale_bound, config.quat_bound)
-    optimizer = make_fit_optimizer(
-        [fit.colors], fit.geometry(), FitOptimizerSettings(config.color_lr, config.geometry_lr, bounds=bounds)
+    # Mean offsets are relative to the scene's extent (config docstring): lr and bound x extent.
+    seen_numpy = seen.numpy()
+    extent = config.scene_extent or scene_extent(scene.means[seen_numpy], scene.log_scales[seen_numpy])
+    fit_settings = FitOptimizerSettings(
+        config.color_lr,
+        config.geometry_lr,
+        bounds=GeometryBounds(config.mean_bound, config.log_scale_bound, config.quat_bound),
+        extent=extent,
     )
+    bounds = fit_settings.scene_bounds
+    if geometry:
+        say(f"scene extent {extent:.6g}: mean offsets lr {fit_settings.mean_lr:.3g}, bound +-{bounds.means:.3g}")
+    geometry_params = [p for p in (fit.d_log_scales, fit.d_quats) if p is not None]
+    mean_params = [fit.d_means] if fit.d_means is not None else []
+    optimizer = make_fit_optimizer([fit.colors], geometry_params, fit_settings, mean_params)
 
     with torch.no_grad():
         base_renders = [renderer(v, fit).detach().clone() for v in range(len(active))]
@@ -536,6 +548,7 @@ def stylize(
             "peak_rss_mb": _peak_rss_mb(),
             "views": len(active),
             "gaussians_optimised": int(seen.numel()),
+            "scene_extent": extent,
         }
         log.append(entry)
         if save_views_dir:

@@ -4,7 +4,8 @@ Writes ``report.md`` and PNG plots (drawn by :mod:`.plot`) into one folder:
 
 (a) ``raster_error.png``: the fast rasterizer's max error against the float64 reference renderer
     (:mod:`.raster.reference`) against its forward time, one point per speed-knob setting of
-    :class:`~dresg_addon.raster.RasterSettings`. The reference loops in Python, so it renders a small
+    :class:`~dresg_addon.raster.RasterSettings` (:mod:`.raster.knobs`, the ones ``bench/raster.py`` measures
+    too). The reference loops in Python, so it renders a small
     pixel window at the image centre, from the Gaussians that can reach that window (a conservative
     cull); the fast path renders the whole scene and the same window is compared.
 (b) ``work_precision.png``: the weight-free metrics of :mod:`.metrics` (sliced Wasserstein style
@@ -42,6 +43,7 @@ import torch
 from .camera import Camera, look_at
 from .config import PRESETS, StylizeConfig
 from .errors import ConfigError, with_path
+from .raster.knobs import SPEED_KNOBS, knob_settings
 from .scene import GaussianScene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -50,30 +52,21 @@ BONSAI = "scenes/bonsai-7k-mini.splat"
 DEFAULT_STYLES = ("starry_night.jpg", "the_scream.jpg")
 DEMO = "demo"
 
-# (knob, value) of RasterSettings; None: the exact default. The float32 dtype is written as a string.
-RASTER_KNOBS = (
-    ("exact", None),
-    ("tile_size", 8),
-    ("tile_size", 16),
-    ("tile_size", 32),
-    ("max_per_pixel", 64),
-    ("max_per_pixel", 32),
-    ("max_per_pixel", 16),
-    ("max_per_pixel", 8),
-    ("truncation_sigma", 3.0),
-    ("truncation_sigma", 2.0),
-    ("dtype", "float32"),
-    ("band_pairs", 200_000),
-    ("band_pairs", 8_000_000),
-)
-QUICK_RASTER_KNOBS = (
-    ("exact", None),
-    ("tile_size", 16),
-    ("max_per_pixel", 32),
-    ("max_per_pixel", 8),
-    ("truncation_sigma", 3.0),
-    ("truncation_sigma", 2.0),
-    ("dtype", "float32"),
+# The rasterizer's speed knobs are raster/knobs.py's (the benchmark measures the same ones); --quick takes
+# the default and six of them.
+QUICK_RASTER_KNOBS = tuple(
+    (knob, value)
+    for knob, value in SPEED_KNOBS
+    if value is None
+    or (knob, value)
+    in {
+        ("tile_size", 16),
+        ("max_per_pixel", 32),
+        ("max_per_pixel", 8),
+        ("truncation_sigma", 3.0),
+        ("truncation_sigma", 2.0),
+        ("dtype", "float32"),
+    }
 )
 ERROR_FLOOR = 1e-17  # errors of exactly 0 are drawn here on the log axis
 
@@ -247,16 +240,6 @@ def window_subset(scene: GaussianScene, camera: Camera, window, near: float = 0.
     return np.nonzero(ok)[0]
 
 
-def _knob_settings(knob: str, value):
-    from .raster import RasterSettings
-
-    if value is None:
-        return RasterSettings()
-    if knob == "dtype":
-        value = getattr(torch, value)
-    return RasterSettings(**{knob: value})
-
-
 def _fastest_time(fn: Callable[[], object], repeats: int) -> float:
     """The fastest of ``repeats`` runs: other work on a shared machine only ever adds time."""
     times = []
@@ -268,7 +251,7 @@ def _fastest_time(fn: Callable[[], object], repeats: int) -> float:
 
 
 def rasterizer_error_vs_time(
-    scene: GaussianScene, camera: Camera, window, knobs=RASTER_KNOBS, repeats: int = 3, say=print
+    scene: GaussianScene, camera: Camera, window, knobs=SPEED_KNOBS, repeats: int = 3, say=print
 ) -> dict:
     """Per knob setting: max |rgb - reference| and |alpha - reference| on ``window``, and the forward time.
 
@@ -304,10 +287,10 @@ def rasterizer_error_vs_time(
         with torch.no_grad():
             return render(*tensors, all_colors, camera, settings)
 
-    forward(_knob_settings("exact", None))  # warm-up: first-call allocations are not any knob's cost
+    forward(knob_settings("default", None))  # warm-up: first-call allocations are not any knob's cost
     rows = []
     for knob, value in knobs:
-        settings = _knob_settings(knob, value)
+        settings = knob_settings(knob, value)
         start = time.perf_counter()
         out = forward(settings)
         seconds = time.perf_counter() - start
@@ -339,10 +322,12 @@ def rasterizer_error_vs_time(
 def raster_panel(result: dict):
     from .plot import MARKERS, Panel, Series
 
+    times = [r["seconds"] for r in result["rows"] if r["seconds"] > 0]
     panel = Panel(
         "Rasterizer: error against the float64 reference",
         "forward time of the full image (s)",
         "max |rgb - reference| on the window",
+        xlog=bool(times) and max(times) > 4 * min(times),
         ylog=True,
         note=f"{result['camera']} image, {result['window'][2]}x{result['window'][3]} reference window"
         + (f"; exact zeros drawn at {ERROR_FLOOR:g}" if any(r["rgb_error"] == 0 for r in result["rows"]) else ""),
@@ -351,18 +336,26 @@ def raster_panel(result: dict):
     for row in result["rows"]:
         families.setdefault(row["knob"], []).append(row)
     for i, (knob, rows) in enumerate(families.items()):
-        rows = sorted(rows, key=lambda r: r["seconds"])
-        panel.series.append(
+        panel.series.append(  # in the order of the knob's values: a curve along the setting
             Series(
                 [r["seconds"] for r in rows],
                 [max(r["rgb_error"], ERROR_FLOOR) for r in rows],
                 knob,
                 marker=MARKERS[i % len(MARKERS)],
                 line=len(rows) > 1,
-                point_labels=[str(r["value"]) for r in rows if r["value"] is not None],
+                point_labels=[_knob_value_label(r["value"]) for r in rows],
             )
         )
     return panel
+
+
+def _knob_value_label(value) -> str:
+    """A short label of a knob value: "" for the default, 500k, 8M, 3, float32."""
+    if value is None:
+        return ""
+    if isinstance(value, int) and value >= 1000:
+        return f"{value / 1e6:g}M" if value >= 1_000_000 else f"{value / 1e3:g}k"
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def raster_table(result: dict) -> str:
@@ -371,7 +364,7 @@ def raster_table(result: dict) -> str:
         "|---|---|---:|---:|---:|---:|",
     ]
     for r in result["rows"]:
-        value = "default" if r["value"] is None else r["value"]
+        value = "-" if r["value"] is None else _knob_value_label(r["value"])
         lines.append(
             f"| {r['knob']} | {value} | {r['rgb_error']:.2e} | {r['alpha_error']:.2e} | {r['pairs']:,} "
             f"| {r['seconds']:.3f} |"
@@ -792,7 +785,7 @@ def build_report(options: ReportOptions, say: Callable[[str], None] | None = Non
     wx, wy = (16, 12) if options.quick else (32, 24)
     wx, wy = min(wx, camera.width), min(wy, camera.height)
     window = ((camera.width - wx) // 2, (camera.height - wy) // 2, wx, wy)
-    knobs = QUICK_RASTER_KNOBS if options.quick else RASTER_KNOBS
+    knobs = QUICK_RASTER_KNOBS if options.quick else SPEED_KNOBS
     raster = rasterizer_error_vs_time(inputs.scene, camera, window, knobs, options.repeats, say)
     lines += [
         "## (a) Rasterizer: error against the float64 reference vs run time",

@@ -63,6 +63,16 @@ def test_exr_is_float32_exact(tmp_path, rgb):
     assert back[0, 0, 0] == np.float32(1e-7) and back[0, 0, 1] == np.float32(1e4)
 
 
+@pytest.mark.parametrize("suffix", [".exr", ".png"])
+def test_strided_arrays_are_written(tmp_path, rgb, suffix):
+    # A channel-major buffer seen as [H, W, 3] (what a transposed tensor gives) has strided channels.
+    strided = np.ascontiguousarray(rgb.transpose(2, 0, 1)).transpose(1, 2, 0)
+    assert not strided.flags["C_CONTIGUOUS"]
+    write_image(tmp_path / f"strided{suffix}", strided)
+    expected = rgb if suffix == ".exr" else quantised(rgb, 8)
+    np.testing.assert_allclose(read_image(tmp_path / f"strided{suffix}"), expected, atol=1e-6)
+
+
 def test_tif_32_bit_is_float(tmp_path, rgb):
     path = tmp_path / "f.tif"
     write_image(path, rgb * 2, bits=32)

@@ -27,6 +27,7 @@ from dresg_addon.pipeline import ActiveViews, Progress, StageUpdate, select_acti
 from dresg_addon.raster import RasterSettings, render_scene
 from dresg_addon.scene import SH_C0, SH_REST_COUNTS, GaussianScene
 from dresg_addon.schedule import stage_gammas, stage_timesteps
+from dresg_addon.stability import scaled_scene
 
 REPO = Path(__file__).resolve().parents[1]
 STYLE_RGB = np.array([0.1, 0.2, 0.9], dtype=np.float32)  # strong blue, far from the scene's warm colours
@@ -154,7 +155,9 @@ def test_geometry_offsets_stay_within_their_bounds_and_opacity_is_frozen():
     config = TINY.with_(stages=1, fit_steps=3, post_steps=2, optimize_geometry=True, geometry_lr=1.0)
     updates = []
     result = run(scene, config=config, on_stage=updates.append)
-    bounds = {"means": config.mean_bound, "log_scales": config.log_scale_bound, "quats": config.quat_bound}
+    extent = result.log[0]["scene_extent"]  # about the sphere's radius 0.5: the mean bound is 0.05 x extent
+    assert extent == pytest.approx(0.5, rel=0.1)
+    bounds = {"means": config.mean_bound * extent, "log_scales": config.log_scale_bound, "quats": config.quat_bound}
     for name, bound in bounds.items():
         offset = np.abs(getattr(result.scene, name).astype(np.float64) - getattr(scene, name))
         assert offset.max() <= bound + 1e-6, name
@@ -163,6 +166,43 @@ def test_geometry_offsets_stay_within_their_bounds_and_opacity_is_frozen():
     last = updates[-1]
     assert last.means is not None and last.log_scales is not None and last.quats is not None
     np.testing.assert_array_equal(last.means, result.scene.means)
+
+
+@pytest.mark.parametrize("factor", [1e-3, 1e3])
+def test_a_scaled_scene_gives_the_scaled_stylized_scene(factor):
+    """Mean offsets are relative to the scene extent: scaling the scene and cameras scales them alike."""
+    scene, cameras = sphere_scene(n=200), ring_cameras()
+    # A flat style without the content term: the proposals do not depend on the renders' last bits.
+    config = TINY.with_(stages=1, optimize_geometry=True, content_weight=0.0)
+    base = run(scene, cameras, config=config)
+    big, big_cameras = scaled_scene(scene, cameras, factor)
+    scaled = run(big, big_cameras, config=config.with_(near=config.near * factor))
+    extent = base.log[0]["scene_extent"]
+    assert scaled.log[0]["scene_extent"] == pytest.approx(factor * extent, rel=1e-5)
+    bound = config.mean_bound * extent
+    offsets = base.scene.means.astype(np.float64) - scene.means
+    scaled_offsets = (scaled.scene.means.astype(np.float64) - big.means) / factor
+    assert np.abs(offsets).max() > 0.05 * bound  # the means did move
+    np.testing.assert_allclose(scaled_offsets, offsets, rtol=0, atol=1e-3 * bound)
+    np.testing.assert_allclose(scaled.scene.sh_dc, base.scene.sh_dc, rtol=0, atol=1e-3)
+    # Adam's eps 1e-15 turns a gradient at rounding level into a full step, so a few quaternion components
+    # whose gradient is ~0 step differently; the rest agree to float32 rounding.
+    quats = np.abs(scaled.scene.quats - base.scene.quats)
+    assert np.mean(quats > 1e-4) < 0.02 and quats.max() <= 2 * config.quat_bound
+    np.testing.assert_allclose(
+        scaled.scene.log_scales - big.log_scales, base.scene.log_scales - scene.log_scales, rtol=0, atol=1e-5
+    )
+
+
+def test_a_given_scene_extent_replaces_the_measured_one():
+    scene = sphere_scene(n=200)
+    config = TINY.with_(stages=1, fit_steps=3, post_steps=0, optimize_geometry=True, geometry_lr=1.0)
+    result = run(scene, config=config.with_(scene_extent=1.0))  # the paper's absolute numbers
+    assert result.log[0]["scene_extent"] == 1.0
+    offset = np.abs(result.scene.means.astype(np.float64) - scene.means).max()
+    assert 0.5 * config.mean_bound < offset <= config.mean_bound + 1e-6
+    with pytest.raises(ConfigError):
+        StylizeConfig(scene_extent=-1.0)
 
 
 def test_same_seed_gives_identical_arrays_and_another_seed_does_not():

@@ -123,6 +123,32 @@ def test_figure_tiles_panels_and_saves(tmp_path):
     np.testing.assert_allclose(back, np.round(image * 255) / 255, atol=1e-6)
 
 
+def test_raster_panel_and_table_follow_the_shared_speed_knobs():
+    from dresg_addon.raster.knobs import SPEED_KNOBS
+    from dresg_addon.report import QUICK_RASTER_KNOBS, _knob_value_label, raster_panel, raster_table
+
+    assert set(QUICK_RASTER_KNOBS) <= set(SPEED_KNOBS) and QUICK_RASTER_KNOBS[0][1] is None
+    rows = [
+        {
+            "knob": knob,
+            "value": value,
+            "rgb_error": 1e-6 * (i + 1),
+            "alpha_error": 0.0,
+            "pairs": 10,
+            "seconds": 0.01 * 2**i,
+        }
+        for i, (knob, value) in enumerate(SPEED_KNOBS)
+    ]
+    result = {"rows": rows, "camera": "48x32", "window": [0, 0, 8, 8]}
+    panel = raster_panel(result)
+    assert panel.xlog  # times spread over more than 4x
+    assert all(len(s.point_labels) == len(s.x) for s in panel.series)
+    assert plot.render_panel(panel, 400, 300).shape == (300, 400, 3)
+    assert f"| {SPEED_KNOBS[0][0]} | - |" in raster_table(result)
+    labels = [_knob_value_label(v) for v in (None, 64, 500_000, 8_000_000, 3.0, 2.5, "float32")]
+    assert labels == ["", "64", "500k", "8M", "3", "2.5", "float32"]
+
+
 def test_window_subset_keeps_every_gaussian_that_reaches_the_window():
     from dresg_addon.raster.reference import reference_render
     from dresg_addon.report import window_subset
@@ -191,7 +217,14 @@ def test_report_command_writes_four_sections_and_plots(tmp_path):
         image = read_image(out / name)
         assert image.ndim == 3 and image.shape[2] == 3 and image.shape[0] > 300
         assert np.isfinite(image).all() and image.min() < 0.2 < 0.9 < image.max()  # ink on white
-    for row in ("| preview |", "| paper |", "| stages 1 |", "| stages 2 |", "| unstylized |", "| exact | default |"):
+    for row in (
+        "| preview |",
+        "| paper |",
+        "| stages 1 |",
+        "| stages 2 |",
+        "| unstylized |",
+        "| default | - |",
+    ):
         assert row in text
     assert "a single Gaussian covers the view" in text
     assert len(list((out / "logs").glob("*.jsonl"))) == 3  # "stages 2" is the shrunk preview preset: run once

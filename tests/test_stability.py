@@ -8,12 +8,7 @@ import pytest
 
 from dresg_addon import stability
 
-KNOWN_FAILURES = {
-    # The fit's mean offsets (Adam lr 1e-3, bound +-0.05) are in absolute scene units: on a scene of size
-    # 2e-4 a one-stage fit moves splats by ~13 scene sizes. The fix belongs in the pipeline (scale the
-    # mean lr and bound by the scene's extent, as 3DGS scales its position lr by the camera extent).
-    "case_scene_scaled_down": "geometry offsets are not scaled with the scene (pipeline)",
-}
+KNOWN_FAILURES: dict[str, str] = {}  # case function name -> reason, run as a strict xfail
 
 
 def _params():

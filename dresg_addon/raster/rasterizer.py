@@ -2,26 +2,36 @@
 
 Pipeline for one view (one small function per stage):
 
-1. :func:`project_gaussians` (float64, per Gaussian): EWA projection and culling.
-2. :func:`_row_extents`: the exact ellipse where alpha >= 1/255, i.e. power <= 2 ln(255 o).
-3. :func:`_plan_bands`: split the image into row bands holding at most ``band_pairs`` pairs, so no
-   tensor ever grows with pixels x Gaussians and large tensors stay within cache-friendly sizes.
-4. :func:`_band_pairs`: per (Gaussian, row) the exact span of pixel centres inside the ellipse, widened
-   by one pixel and filtered with the exact alpha test; sorted by (pixel, depth).
-5. :class:`_Composite`: front-to-back compositing with transmittance as a float64 segmented cumulative
-   sum of log(1 - alpha), and a hand-written backward (the one graphdeco uses, in log space).
+1. :func:`project_gaussians` (float64, per Gaussian): EWA projection and culling, as 1D columns.
+2. :func:`_row_extents`: the rows where the ellipse alpha >= 1/255, i.e. power <= 2 ln(255 o), has pixels.
+3. :func:`_plan_bands`: split the image into row bands of at most ``band_pairs`` candidate samples, so no
+   tensor grows with pixels x Gaussians and the per-sample tensors stay cache-sized.
+4. :func:`_row_entries`: one entry per (Gaussian, row) with the exact span of pixel centres inside the
+   ellipse. On a row at offset dy the power is a (dx - s)^2 + dy^2 / cov_yy with s = dy cov_xy / cov_yy
+   (completing the square), so each sample costs one multiply-add and an exp.
+5. :func:`_band_samples`: the entries' samples, sorted by (pixel, depth), alpha-tested and cut at
+   T < 1e-4 with a float64 scan of log(1 - alpha); only the samples that count are kept.
+6. :class:`_Rasterize`: front-to-back compositing of the kept samples, band by band, and its analytic
+   backward (graphdeco's, in log space). The power's gradient is summed per entry as three moments in
+   the sample's offset, so the per-sample backward never recomputes pixel offsets.
+
+Per-sample arithmetic runs in the dtype of the colours (float32 renders, float64 for gradcheck); the
+scans that accumulate along a pixel stay in float64 (``accumulate``), which keeps float32 renders
+within ~1e-6 of the float64 reference. Per-Gaussian data are kept as 1D columns: on CPU a gather of
+a 1D tensor is several times faster than one of rows of a [N, 3] tensor.
 """
 
 from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
 from ..camera import Camera
 from .projection import project_gaussians
+from .workers import cpu_workers, in_workers
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
@@ -34,12 +44,12 @@ class RasterSettings:
     near: float = 0.01
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # Speed knobs; the defaults are the exact definition.
-    dtype: torch.dtype = torch.float64  # per-sample arithmetic
-    accumulate: torch.dtype = torch.float64  # the per-pixel scans (float32 scans cancel over long bands)
+    dtype: torch.dtype | None = None  # per-sample arithmetic; None: the dtype of the colours
+    accumulate: torch.dtype = torch.float64  # the per-pixel scans (float32 scans cancel over long lists)
     tile_size: int = 0  # 0: exact per-row spans; > 0: every pixel of every tile the bounding box touches
     max_per_pixel: int = 0  # 0: no cap; > 0: at most this many samples per pixel (front-most)
     truncation_sigma: float = 0.0  # 0: none; > 0: also cut at this many standard deviations
-    band_pairs: int = 2_000_000  # memory bound: pairs per row band
+    band_pairs: int = 400_000  # candidate samples per row band: bounds memory, keeps tensors in cache
     depth_tolerance: float = 0.1  # relative depth difference that counts as inconsistent (visibility)
 
 
@@ -53,18 +63,18 @@ class RenderOutput:
     contributions: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # pixel, gaussian, T*alpha
 
 
-def _row_extents(means2d, cov2d, r2, height):
+def _row_extents(my, cyy, r2, height):
     """Rows [y0, y1] whose pixel centres can lie inside power <= r2 (inclusive, clamped)."""
-    half = torch.sqrt(r2 * cov2d[:, 2])
-    y0 = torch.clamp(torch.ceil(means2d[:, 1] - half - 0.5), min=0)
-    y1 = torch.clamp(torch.floor(means2d[:, 1] + half - 0.5), max=height - 1)
+    half = torch.sqrt(r2 * cyy)
+    y0 = torch.clamp(torch.ceil(my - half - 0.5), min=0)
+    y1 = torch.clamp(torch.floor(my + half - 0.5), max=height - 1)
     return y0.long(), y1.long()
 
 
-def _col_extents(means2d, cov2d, r2, width):
-    half = torch.sqrt(r2 * cov2d[:, 0])
-    x0 = torch.clamp(torch.ceil(means2d[:, 0] - half - 0.5), min=0)
-    x1 = torch.clamp(torch.floor(means2d[:, 0] + half - 0.5), max=width - 1)
+def _col_extents(mx, cxx, r2, width):
+    half = torch.sqrt(r2 * cxx)
+    x0 = torch.clamp(torch.ceil(mx - half - 0.5), min=0)
+    x1 = torch.clamp(torch.floor(mx + half - 0.5), max=width - 1)
     return x0.long(), x1.long()
 
 
@@ -91,187 +101,304 @@ def _take(values, index):
     return torch.index_select(values, 0, index)
 
 
+def _owners(starts, total: int):
+    """For each of ``total`` slots, the last group whose start (non-decreasing ``starts``) is <= the slot.
+
+    With starts = cumsum(counts) - counts this expands groups to their members (empty groups skipped),
+    like repeat_interleave but several times faster on CPU.
+    """
+    marks = torch.bincount(starts, minlength=total + 1)[:total]
+    return torch.cumsum(marks, 0) - 1
+
+
 def _expand(counts):
     """For counts [E]: (owner [P], local offset [P]) with P = counts.sum()."""
-    owner = torch.repeat_interleave(torch.arange(counts.numel(), device=counts.device), counts)
     starts = torch.cumsum(counts, 0) - counts
-    local = torch.arange(owner.numel(), device=counts.device) - _take(starts, owner)
+    total = int(starts[-1] + counts[-1]) if counts.numel() else 0
+    owner = _owners(starts, total)
+    local = torch.arange(total, device=counts.device) - _take(starts, owner)
     return owner, local
 
 
-def _band_pairs(means2d, cov2d, conic, opac, r2, y0, y1, r0, r1, width, settings):
-    """(g, pixel, o G) of the pairs of one band with alpha >= 1/255, sorted by (pixel, depth). No gradients.
+@dataclass
+class _Fixed:
+    """Per-Gaussian values the sample generation needs (no gradient), depth-sorted 1D columns."""
 
-    ``g`` indexes the band's Gaussians, which arrive sorted by depth, so g is also the depth rank.
-    """
-    mx_g, my_g = means2d[:, 0].contiguous(), means2d[:, 1].contiguous()
-    ca_g, cb_g, cc_g = (conic[:, i].contiguous() for i in range(3))
-    rows_lo = torch.clamp(y0, min=r0)
-    rows_hi = torch.clamp(y1, max=r1 - 1)
-    n_rows = (rows_hi - rows_lo + 1).clamp_min(0)
-    entry_g, local = _expand(n_rows)
-    row = _take(rows_lo, entry_g) + local
+    mx: torch.Tensor
+    my: torch.Tensor
+    cxx: torch.Tensor
+    cxy: torch.Tensor
+    cyy: torch.Tensor
+    conic_a: torch.Tensor
+    log_opac: torch.Tensor
+    r2: torch.Tensor
+    y0: torch.Tensor
+    y1: torch.Tensor
+    depth: torch.Tensor
+
+
+@dataclass
+class _Entries:
+    """One entry per (Gaussian, row) of a band, Gaussian-major (so in depth order)."""
+
+    gauss: torch.Tensor  # [E] Gaussian index (depth rank), non-decreasing
+    dy: torch.Tensor  # [E] float64 row centre minus the Gaussian's centre
+    shift: torch.Tensor  # [E] float64 dx where the row's power is smallest: dx = u + shift
+    span: torch.Tensor  # [E] candidate count (0: the row misses the ellipse)
+    # In the per-sample dtype:
+    u0: torch.Tensor  # [E] u of the first candidate
+    row_min: torch.Tensor  # [E] dy^2 / cov_yy: the smallest power on the row
+    log_peak: torch.Tensor  # [E] log(o) - row_min / 2: log of o G at the row's minimum
+    half_a: torch.Tensor  # [E] conic_xx / 2
+    pixel0: torch.Tensor  # [E] band pixel index of the first candidate
+
+
+def _row_entries(fixed: _Fixed, in_band, r0, r1, width, dtype, settings) -> _Entries:
+    """Per (Gaussian, row): the exact span of pixel centres with power <= r2 (or the tile span)."""
+    rows_lo = torch.clamp(_take(fixed.y0, in_band), min=r0)
+    n_rows = (torch.clamp(_take(fixed.y1, in_band), max=r1 - 1) - rows_lo + 1).clamp_min(0)
+    local, offset = _expand(n_rows)
+    gauss = _take(in_band, local)
+    row = _take(rows_lo, local) + offset
+    mx = _take(fixed.mx, gauss)
+    dy = row.to(torch.float64) + 0.5 - _take(fixed.my, gauss)
+    cyy = _take(fixed.cyy, gauss)
+    a = _take(fixed.conic_a, gauss)
+    shift = dy * _take(fixed.cxy, gauss) / cyy
+    row_min = dy * dy / cyy  # the smallest power on this row
+    centre = mx + shift  # where it is reached, in pixel coordinates
+    r2 = _take(fixed.r2, gauss)
     if settings.tile_size > 0:
         # Tile candidates: the bounding box widened to tile boundaries (graphdeco style), then filtered.
         tile = settings.tile_size
-        x0, x1 = _col_extents(means2d, cov2d, r2, width)
-        xl = _take(x0 // tile * tile, entry_g)
-        xr = _take(torch.clamp((x1 // tile + 1) * tile - 1, max=width - 1), entry_g)
+        x0, x1 = _col_extents(mx, _take(fixed.cxx, gauss), r2, width)
+        xl = x0 // tile * tile
+        xr = torch.clamp((x1 // tile + 1) * tile - 1, max=width - 1)
     else:
-        # Exact span: a dx^2 + 2 b dx dy + c dy^2 <= r2 solved for dx at this row's centre.
-        a, b, c = _take(ca_g, entry_g), _take(cb_g, entry_g), _take(cc_g, entry_g)
-        mx = _take(mx_g, entry_g)
-        dy = row.to(torch.float64) + 0.5 - _take(my_g, entry_g)
-        disc = b * b * dy * dy - a * (c * dy * dy - _take(r2, entry_g))
-        root = torch.sqrt(torch.clamp_min(disc, 0.0))
-        xl = torch.clamp(torch.ceil(mx + (-b * dy - root) / a - 0.5), min=0).long()
-        xr = torch.clamp(torch.floor(mx + (-b * dy + root) / a - 0.5), max=width - 1).long()
-        xr = torch.where(disc >= 0, xr, xl - 1)
-    span = (xr - xl + 1).clamp_min(0)
-    pair_entry, x_local = _expand(span)
-    g = _take(entry_g, pair_entry)
-    x = _take(xl, pair_entry) + x_local
-    y = _take(row, pair_entry)
-    del pair_entry, x_local
-    dtype = settings.dtype
-    dx = (x.to(dtype) + 0.5) - _take(mx_g.to(dtype), g)
-    dy = (y.to(dtype) + 0.5) - _take(my_g.to(dtype), g)
-    power = (
-        _take(ca_g.to(dtype), g) * dx * dx
-        + 2.0 * _take(cb_g.to(dtype), g) * dx * dy
-        + _take(cc_g.to(dtype), g) * dy * dy
+        rest = r2 - row_min
+        half = torch.sqrt(torch.clamp_min(rest, 0.0) / a)
+        xl = torch.clamp(torch.ceil(centre - half - 0.5), min=0).long()
+        xr = torch.clamp(torch.floor(centre + half - 0.5), max=width - 1).long()
+        xr = torch.where(rest >= 0, xr, xl - 1)
+    return _Entries(
+        gauss=gauss,
+        dy=dy,
+        shift=shift,
+        span=(xr - xl + 1).clamp_min(0),
+        u0=(xl.to(torch.float64) + 0.5 - centre).to(dtype),
+        row_min=row_min.to(dtype),
+        log_peak=(_take(fixed.log_opac, gauss) - 0.5 * row_min).to(dtype),
+        half_a=(0.5 * a).to(dtype),
+        pixel0=(row - r0) * width + xl,
     )
-    raw = _take(opac.to(dtype), g) * torch.exp(-0.5 * power)  # o G before the 0.99 clamp
-    keep = raw >= ALPHA_MIN
-    if settings.truncation_sigma > 0:
-        keep &= power <= settings.truncation_sigma**2
-    keep = torch.nonzero(keep).squeeze(-1)
-    g, raw = _take(g, keep), _take(raw, keep)
-    pixel = (_take(y, keep) - r0) * width + _take(x, keep)
-    n_g = means2d.shape[0]
-    n_pix = (r1 - r0) * width
-    key_dtype = torch.int32 if n_pix * max(n_g, 1) < 2**31 else torch.int64
-    key = pixel.to(key_dtype) * n_g + g.to(key_dtype)
-    order = torch.sort(key).indices
-    return _take(g, order), _take(pixel, order), _take(raw, order)
 
 
-def _segments(pixel):
-    """For pairs sorted by pixel: index of each pair's segment start and end (inclusive)."""
-    n = pixel.numel()
-    new = torch.ones(n, dtype=torch.bool, device=pixel.device)
-    new[1:] = pixel[1:] != pixel[:-1]
-    starts = torch.nonzero(new).squeeze(-1)
-    seg = torch.cumsum(new, 0) - 1
-    ends = torch.empty_like(starts)
-    ends[:-1] = starts[1:] - 1
-    if ends.numel():
-        ends[-1] = n - 1
-    return _take(starts, seg), _take(ends, seg)
+@dataclass
+class _Samples:
+    """The samples of one band that count, sorted by (pixel, depth): alpha >= 1/255, before T < 1e-4."""
+
+    pixel: torch.Tensor  # [S] band pixel index
+    entry: torch.Tensor  # [S] index into the band's entries
+    gauss: torch.Tensor  # [S] Gaussian index
+    u: torch.Tensor  # [S] x offset from the row's power minimum: dx = u + shift[entry]
+    alpha: torch.Tensor  # [S] min(0.99, o G)
+    log_t: torch.Tensor  # [S] log transmittance in front of the sample
+    last: torch.Tensor  # [n_pix] index of each pixel's last sample (-1: none)
+    log_final: torch.Tensor  # [n_pix] log transmittance behind all of a pixel's samples
 
 
-def _pixel_offsets(means2d, g, pixel, r0, width, dtype):
-    """(dx, dy) [P] from each pair's Gaussian centre to its pixel centre."""
-    x = pixel % width
-    y = pixel // width + r0
-    dx = (x.to(dtype) + 0.5) - _take(means2d[:, 0].to(dtype), g)
-    dy = (y.to(dtype) + 0.5) - _take(means2d[:, 1].to(dtype), g)
-    return dx, dy
+def _at_last(values, last):
+    """Per pixel: ``values`` at the pixel's last sample, 0 where it has none."""
+    if values.numel() == 0:
+        return torch.zeros(last.shape, dtype=values.dtype, device=values.device)
+    return torch.where(last >= 0, _take(values, last.clamp_min(0)), 0.0)
 
 
-def _rowdot(a, b):
-    """sum over the last axis (size 3) of a * b, as three fused multiply-adds (a small-axis sum is slow)."""
-    return torch.addcmul(torch.addcmul(a[:, 0] * b[:, 0], a[:, 1], b[:, 1]), a[:, 2], b[:, 2])
+def _band_samples(entries: _Entries, n_pix: int, dtype, settings) -> _Samples:
+    """Expand the entries to samples, sort them by (pixel, depth), alpha-test them and end each pixel at T < 1e-4.
+
+    Samples whose alpha rounds below 1/255 at the span's ends get alpha 0 and stay, inert (their weight
+    and every gradient through them are 0), which spares a compaction.
+    """
+    span = entries.span
+    starts = torch.cumsum(span, 0) - span
+    total = int(starts[-1] + span[-1]) if span.numel() else 0
+    owner = _owners(starts, total)
+    pixel = _take(entries.pixel0 - starts, owner) + torch.arange(total, device=span.device)
+    # Entries are Gaussian-major, so candidates arrive in depth order: a stable sort by pixel suffices.
+    key = torch.int16 if n_pix <= 2**15 else torch.int32 if n_pix <= 2**31 else torch.int64
+    pixel, order = torch.sort(pixel.to(key), stable=True)
+    pixel, owner = pixel.long(), _take(owner, order)
+    u = (pixel - _take(entries.pixel0, owner)).to(dtype).add_(_take(entries.u0, owner))
+    power_half = _take(entries.half_a, owner).mul_(u).mul_(u)  # (power - row minimum) / 2
+    raw = torch.exp_(_take(entries.log_peak, owner).sub_(power_half))  # o G before the 0.99 clamp
+    if settings.tile_size > 0 or settings.truncation_sigma > 0 or settings.max_per_pixel > 0:
+        # Many candidates fail here (tiles, truncation), or the cap counts only real samples.
+        keep = raw >= ALPHA_MIN
+        if settings.truncation_sigma > 0:
+            keep &= 2.0 * power_half + _take(entries.row_min, owner) <= settings.truncation_sigma**2
+        survivors = torch.nonzero(keep).squeeze(-1)
+        pixel, owner, u, raw = (_take(t, survivors) for t in (pixel, owner, u, raw))
+    else:
+        raw = raw.masked_fill_(raw < ALPHA_MIN, 0.0)
+    alpha = raw.clamp_max_(ALPHA_MAX)
+    log1m = torch.neg(alpha).log1p_()
+    counts = torch.bincount(pixel, minlength=n_pix)
+    first = torch.cumsum(counts, 0) - counts
+    after = torch.cumsum(log1m.to(settings.accumulate), 0)  # inclusive scan over the whole band
+    before_pixel = _take(torch.cat([after.new_zeros(1), after]), first)  # scan value in front of each pixel
+    log_after = after.sub_(_take(before_pixel, pixel))  # log T behind each sample, within its pixel
+    include = log_after >= LOG_T_MIN  # a prefix of each pixel's samples
+    if settings.max_per_pixel > 0:
+        include &= torch.arange(pixel.numel(), device=pixel.device) - _take(first, pixel) < settings.max_per_pixel
+    n_kept = torch.zeros(n_pix, dtype=torch.int64, device=pixel.device).index_add_(0, pixel, include.long())
+    kept_first = torch.cumsum(n_kept, 0) - n_kept
+    n_total = int(kept_first[-1] + n_kept[-1]) if n_pix else 0
+    kept_pixel = _owners(kept_first, n_total)
+    kept = _take(first - kept_first, kept_pixel) + torch.arange(n_total, device=pixel.device)
+    log_t = (log_after - log1m).to(dtype)  # in front of the sample
+    owner, u, alpha, log_t = (_take(t, kept) for t in (owner, u, alpha, log_t))
+    has = n_kept > 0
+    last = torch.where(has, kept_first + n_kept - 1, -1)
+    log_final = torch.where(has, _at_last(log_after, torch.where(has, first + n_kept - 1, -1)), 0.0)
+    return _Samples(kept_pixel, owner, _take(entries.gauss, owner), u, alpha, log_t, last, log_final)
 
 
-class _Composite(torch.autograd.Function):
-    """Front-to-back compositing of one band, with the analytic backward in log space.
+@dataclass
+class _Plan:
+    """What :class:`_Rasterize` needs besides the differentiable columns (no gradient flows through it)."""
 
-    Forward: T_k = exp(sum_{j<k} log(1 - a_j)) within each pixel; samples with T_k (1 - a_k) < 1e-4
-    (and all behind them) are left out; C = sum T_k a_k c_k + T_final * background.
+    fixed: _Fixed
+    bands: list[tuple[int, int]]
+    width: int
+    height: int
+    dtype: torch.dtype
+    settings: RasterSettings
+    visibility: str | None
+    keep_contributions: bool
+    # Filled by the forward pass:
+    n_pairs: int = 0
+    visible: torch.Tensor | None = None  # [M] per depth-sorted Gaussian
+    contributions: list = field(default_factory=list)  # (image pixel, Gaussian rank, T * alpha) per band
+
+
+class _Rasterize(torch.autograd.Function):
+    """Front-to-back compositing of every band's kept samples, with the analytic backward in log space.
+
+    Forward: C = sum_k T_k a_k c_k + T_final * background over each pixel's samples (T_k from the scan).
     Backward: dC/da_k = T_k c_k - (sum_{j>k} T_j a_j c_j + T_final bg) / (1 - a_k), safe since a <= 0.99.
+    With power = a dx^2 + 2 b dx dy + c dy^2 and dL/dpower = -a_k/2 dL/da_k per sample, the mean and
+    conic gradients need the sums of dL/dpower times 1, dx, dy, dx^2, dx dy, dy^2 per Gaussian; dy is
+    fixed per entry and dx = u + shift, so per entry three moments in u suffice.
+
+    Inputs are depth-sorted 1D columns: mx, my, conic a, b, c, opacity (float64) and r, g, b colours.
     """
 
     @staticmethod
-    def forward(ctx, means2d, conic, opac, colors, g, pixel, raw, depth, meta):
-        r0, width, n_pix, background, dtype, accumulate, cap = meta
-        alpha = torch.clamp_max(raw, ALPHA_MAX)
-        unclamped = raw < ALPHA_MAX
-        log1m = torch.log1p(-alpha)
-        start, end = _segments(pixel)
-        wide = log1m.to(accumulate)
-        excl = torch.cumsum(wide, 0) - wide
-        log_t = (excl - _take(excl, start)).to(dtype)
-        include = (log_t + log1m) >= LOG_T_MIN
-        if cap > 0:
-            include &= (torch.arange(pixel.numel(), device=pixel.device) - start) < cap
-        t_before = torch.exp(log_t)
-        weight = torch.where(include, t_before * alpha, torch.zeros((), dtype=dtype))
-        cols = colors.to(dtype)
-        rgb = torch.zeros(n_pix, 3, dtype=dtype, device=colors.device)
-        rgb.index_add_(0, pixel, weight[:, None] * _take(cols, g))
-        log_final = torch.zeros(n_pix, dtype=dtype, device=colors.device)
-        log_final.index_add_(0, pixel, torch.where(include, log1m, torch.zeros((), dtype=dtype)))
-        t_final = torch.exp(log_final)
-        bg = torch.tensor(background, dtype=dtype, device=colors.device)
-        rgb = rgb + t_final[:, None] * bg
-        with torch.no_grad():
-            wsum = torch.zeros(n_pix, dtype=dtype, device=colors.device).index_add_(0, pixel, weight)
-            dsum = torch.zeros(n_pix, dtype=dtype, device=colors.device).index_add_(
-                0, pixel, weight * _take(depth.to(dtype), g)
-            )
-            pix_depth = torch.where(wsum > 0, dsum / torch.where(wsum > 0, wsum, 1.0), 0.0)
-        ctx.save_for_backward(
-            means2d, conic, opac, colors, g, pixel, alpha, unclamped, t_before, weight, t_final, start, end
-        )
-        ctx.meta = meta
-        ctx.mark_non_differentiable(pix_depth, weight)
-        return rgb.to(colors.dtype), t_final.to(colors.dtype), pix_depth, weight
+    def forward(ctx, mx, my, ca, cb, cc, opac, red, green, blue, plan: _Plan):
+        settings, dtype, width = plan.settings, plan.dtype, plan.width
+        device = red.device
+        n_img = plan.height * width
+        cols = [c.detach().to(dtype) for c in (red, green, blue)]
+        rgb = torch.zeros(3, n_img, dtype=dtype, device=device)
+        log_final = torch.zeros(n_img, dtype=torch.float64, device=device)
+        depth_sum = torch.zeros(n_img, dtype=dtype, device=device)
+        depth = plan.fixed.depth.to(dtype)
+
+        def band(_worker, rows):
+            r0, r1 = rows
+            n_pix, f = (r1 - r0) * width, plan.fixed
+            in_band = torch.nonzero((f.y0 < r1) & (f.y1 >= r0)).squeeze(-1)
+            entries = _row_entries(f, in_band, r0, r1, width, dtype, settings)
+            s = _band_samples(entries, n_pix, dtype, settings)
+            weight = torch.exp(s.log_t) * s.alpha
+            for ch in range(3):  # bands own disjoint pixel ranges: workers never write the same element
+                rgb[ch].narrow(0, r0 * width, n_pix).index_add_(0, s.pixel, weight * _take(cols[ch], s.gauss))
+            log_final.narrow(0, r0 * width, n_pix).copy_(s.log_final)
+            depth_sum.narrow(0, r0 * width, n_pix).index_add_(0, s.pixel, weight * _take(depth, s.gauss))
+            return r0, n_pix, entries, s, weight
+
+        bands = in_workers(band, plan.bands, cpu_workers(device, len(plan.bands)))
+        plan.n_pairs = sum(int(torch.count_nonzero(s.alpha)) for _, _, _, s, _ in bands)
+        t_final = torch.exp(log_final).to(dtype)
+        covered = -torch.expm1(log_final).to(dtype)  # the sum of each pixel's weights
+        pix_depth = torch.where(covered > 0, depth_sum / torch.where(covered > 0, covered, 1.0), 0.0)
+        if plan.visibility:
+            plan.visible = torch.zeros(mx.numel(), dtype=dtype, device=device)
+        for r0, _n_pix, _entries, s, weight in bands:
+            if plan.visibility:
+                used = slice(None)
+                if plan.visibility == "depth_consistent":
+                    d_g, d_p = _take(depth, s.gauss), _take(pix_depth, s.pixel + r0 * width)
+                    used = torch.nonzero((d_g - d_p).abs() <= settings.depth_tolerance * d_p).squeeze(-1)
+                plan.visible.index_add_(0, s.gauss[used], weight[used])
+            if plan.keep_contributions:
+                real = torch.nonzero(weight > 0).squeeze(-1)
+                plan.contributions.append(
+                    (_take(s.pixel, real) + r0 * width, _take(s.gauss, real), _take(weight, real).float())
+                )
+        bg = torch.tensor(settings.background, dtype=dtype, device=device)
+        rgb = torch.addcmul(rgb.t(), t_final[:, None], bg).contiguous()
+        ctx.save_for_backward(ca, cb, cc, opac)
+        ctx.bands, ctx.cols, ctx.t_final, ctx.plan = bands, cols, t_final, plan
+        ctx.mark_non_differentiable(pix_depth)
+        return rgb.to(red.dtype), t_final.to(red.dtype), pix_depth
 
     @staticmethod
-    def backward(ctx, grad_rgb, grad_t, _grad_depth, _grad_weight):
-        means2d, conic, opac, colors, g, pixel, alpha, unclamped, t_before, weight, t_final, start, end = (
-            ctx.saved_tensors
-        )
-        r0, width, n_pix, background, dtype, accumulate, _ = ctx.meta
-        gr = grad_rgb.to(dtype)
-        bg = torch.tensor(background, dtype=dtype, device=gr.device)
-        tail = gr @ bg
+    def backward(ctx, grad_rgb, grad_t, _grad_depth):
+        ca, cb, cc, opac = ctx.saved_tensors
+        plan, cols, t_final = ctx.plan, ctx.cols, ctx.t_final
+        dtype, accumulate, width = plan.dtype, plan.settings.accumulate, plan.width
+        device = grad_rgb.device
+        f64 = torch.float64
+        gr = grad_rgb.to(dtype).t().contiguous()  # [3, n_img]
+        bg = torch.tensor(plan.settings.background, dtype=dtype, device=device)
+        tail = bg @ gr
         if grad_t is not None:
             tail = tail + grad_t.to(dtype)
-        tail = t_final * tail  # [n_pix]: d/dT_final contribution, times T_final
-        gr_pair = _take(gr, pixel)  # [P, 3]
-        dot = _rowdot(gr_pair, _take(colors.to(dtype), g))  # G_p . c_k
-        cs = torch.cumsum((weight * dot).to(accumulate), 0)
-        behind = (_take(cs, end) - cs).to(dtype)  # sum_{j>k} T_j a_j (G . c_j)
-        included = weight > 0
-        d_alpha = torch.where(
-            included, t_before * dot - (behind + _take(tail, pixel)) / (1.0 - alpha), torch.zeros((), dtype=dtype)
-        )
-        d_alpha = torch.where(unclamped, d_alpha, torch.zeros((), dtype=dtype))
-        n_g = means2d.shape[0]
-        grad_colors = torch.zeros(n_g, 3, dtype=dtype, device=gr.device).index_add_(0, g, weight[:, None] * gr_pair)
-        # alpha = o G: d alpha / d o = alpha / o; d alpha / d power = -alpha / 2 (both where unclamped).
-        grad_opac = torch.zeros(n_g, dtype=dtype, device=gr.device).index_add_(0, g, d_alpha * alpha)
-        grad_opac = grad_opac / opac.to(dtype)
-        dx, dy = _pixel_offsets(means2d, g, pixel, r0, width, dtype)
-        d_power = -0.5 * alpha * d_alpha
-        ca, cb, cc = (_take(conic[:, i].to(dtype), g) for i in range(3))
-        d_mean = torch.stack([-2.0 * (ca * dx + cb * dy), -2.0 * (cb * dx + cc * dy)], -1)
-        grad_means2d = torch.zeros(n_g, 2, dtype=dtype, device=gr.device).index_add_(0, g, d_power[:, None] * d_mean)
-        d_conic = torch.stack([dx * dx, 2.0 * dx * dy, dy * dy], -1)
-        grad_conic = torch.zeros(n_g, 3, dtype=dtype, device=gr.device).index_add_(0, g, d_power[:, None] * d_conic)
-        return (
-            grad_means2d.to(means2d.dtype),
-            grad_conic.to(conic.dtype),
-            grad_opac.to(opac.dtype),
-            grad_colors.to(colors.dtype),
-            None,
-            None,
-            None,
-            None,
-            None,
-        )
+        tail = t_final * tail  # [n_img]: dL/dT_final times T_final
+        n_g = ca.numel()
+        workers = cpu_workers(device, len(ctx.bands))
+        # Per worker: colour gradients [3, M] and sums of dL/dpower times 1, dx, dy, dx^2, dx dy, dy^2 [6, M].
+        partial = [(torch.zeros(3, n_g, dtype=dtype, device=device), torch.zeros(6, n_g, dtype=f64, device=device))]
+        partial += [(torch.zeros_like(partial[0][0]), torch.zeros_like(partial[0][1])) for _ in range(workers - 1)]
+
+        def band(worker, item):
+            r0, n_pix, e, s, weight = item
+            grad_colors, sums = partial[worker]
+            dot = None
+            for ch in range(3):
+                g_ch = _take(gr[ch].narrow(0, r0 * width, n_pix), s.pixel)
+                grad_colors[ch].index_add_(0, s.gauss, weight * g_ch)
+                term = g_ch * _take(cols[ch], s.gauss)
+                dot = term if dot is None else dot.add_(term)
+            scan = torch.cumsum((weight * dot).to(accumulate), 0)
+            behind = (_take(_at_last(scan, s.last), s.pixel) - scan).to(dtype)  # sum_{j>k} T_j a_j (G . c_j)
+            tail_s = _take(tail.narrow(0, r0 * width, n_pix), s.pixel)
+            d_alpha = torch.exp(s.log_t) * dot - (behind + tail_s) / (1.0 - s.alpha)
+            d_alpha = d_alpha.masked_fill_(s.alpha >= ALPHA_MAX, 0.0)  # clamped: no gradient
+            d_power = -0.5 * s.alpha * d_alpha
+            n_e = e.gauss.numel()
+            m0, mu, muu = (
+                torch.zeros(n_e, dtype=dtype, device=device).index_add_(0, s.entry, term).to(f64)
+                for term in (d_power, d_power * s.u, d_power * s.u * s.u)
+            )
+            sx = mu + e.shift * m0  # sum of dL/dpower dx over the entry
+            sxx = muu + e.shift * (2.0 * mu + e.shift * m0)  # ... dx^2
+            for i, term in enumerate((m0, sx, e.dy * m0, sxx, e.dy * sx, e.dy * e.dy * m0)):
+                sums[i].index_add_(0, e.gauss, term)
+
+        in_workers(band, ctx.bands, workers)
+        grad_colors, sums = partial[0]
+        for more_colors, more_sums in partial[1:]:
+            grad_colors += more_colors
+            sums += more_sums
+        p1, px, py, pxx, pxy, pyy = sums
+        a, b, c = ca.detach(), cb.detach(), cc.detach()
+        grad_mx = -2.0 * (a * px + b * py)
+        grad_my = -2.0 * (b * px + c * py)
+        grad_opac = -2.0 * p1 / opac.detach()  # d alpha / d o = alpha / o
+        return grad_mx, grad_my, pxx, 2.0 * pxy, pyy, grad_opac, *grad_colors, None
 
 
 def render(
@@ -288,7 +415,7 @@ def render(
     """Render one view. Differentiable in means, quats, log_scales, opacity_logits and colors.
 
     Gaussians with any non-finite parameter are skipped (zero gradient). Outputs have the dtype of
-    ``colors``; ``settings.dtype`` sets the per-sample arithmetic.
+    ``colors``; ``settings.dtype`` sets the per-sample arithmetic (default: that dtype too).
     """
     n = means.shape[0]
     for name, tensor, shape in (
@@ -309,69 +436,47 @@ def render(
     proj = project_gaussians(
         means, quats, log_scales, w2c, camera.fx, camera.fy, camera.cx, camera.cy, width, height, settings.near, valid
     )
-    opac = torch.sigmoid(opacity_logits[proj.index].to(torch.float64))
+    opac = torch.sigmoid(_take(opacity_logits, proj.index).to(torch.float64))
     with torch.no_grad():
         r2 = 2.0 * torch.log(255.0 * opac)  # alpha >= 1/255  <=>  power <= 2 ln(255 o)
         if settings.truncation_sigma > 0:
             r2 = torch.clamp_max(r2, settings.truncation_sigma**2)
-        r2 = r2 * (1.0 + 1e-9) + 1e-9  # candidates only; the exact alpha test decides
-        y0, y1 = _row_extents(proj.means2d, proj.cov2d, r2.clamp_min(0), height)
-        x0, x1 = _col_extents(proj.means2d, proj.cov2d, r2.clamp_min(0), width)
+        r2 = (r2 * (1.0 + 1e-9) + 1e-9).clamp_min(0.0)  # candidates only; the exact alpha test decides
+        y0, y1 = _row_extents(proj.my, proj.cyy, r2, height)
+        x0, x1 = _col_extents(proj.mx, proj.cxx, r2, width)
         alive = (r2 > 0) & (y0 <= y1) & (x0 <= x1)
         order = torch.nonzero(alive).squeeze(-1)
-        order = order[torch.sort(proj.depth.detach()[order], stable=True).indices]
-    g_index = proj.index[order]  # [M] input indices, front to back
-    means2d = proj.means2d[order]
-    conic = proj.conic[order]
-    cov2d = proj.cov2d.detach()[order]
-    opac = opac[order]
-    depth = proj.depth.detach()[order]
-    cols = colors[g_index]
-    r2, y0, y1 = r2[order], y0[order], y1[order]
-    est = torch.clamp(2.0 * torch.sqrt(r2 * cov2d[:, 0]) + 3.0, max=width)
-    bands = _plan_bands(y0, y1, est, height, settings.band_pairs)
-    cap = settings.max_per_pixel
-    rgb_parts, t_parts, depth_parts = [], [], []
-    vis = torch.zeros(order.numel(), dtype=settings.dtype, device=device) if visibility else None
-    contrib = []
-    n_pairs = 0
-    for r0, r1 in bands:
-        n_pix = (r1 - r0) * width
-        with torch.no_grad():
-            in_band = torch.nonzero((y0 < r1) & (y1 >= r0)).squeeze(-1)
-            g, pixel, raw = _band_pairs(
-                means2d.detach()[in_band], cov2d[in_band], conic.detach()[in_band], opac.detach()[in_band],
-                r2[in_band], y0[in_band], y1[in_band], r0, r1, width, settings,
-            )  # fmt: skip
-        meta = (r0, width, n_pix, tuple(settings.background), settings.dtype, settings.accumulate, cap)
-        rgb_b, t_b, depth_b, weight = _Composite.apply(
-            means2d[in_band], conic[in_band], opac[in_band], cols[in_band], g, pixel, raw, depth[in_band], meta
-        )
-        rgb_parts.append(rgb_b)
-        t_parts.append(t_b)
-        depth_parts.append(depth_b)
-        n_pairs += int((weight > 0).sum())
-        if visibility or keep_contributions:
-            used = weight > 0
-            if visibility == "depth_consistent":
-                d_g, d_p = depth[in_band][g], depth_b[pixel]
-                used &= (d_g - d_p).abs() <= settings.depth_tolerance * d_p
-            if visibility:
-                vis.index_add_(0, in_band[g[used]], weight[used])
-            if keep_contributions:
-                nz = weight > 0
-                contrib.append((pixel[nz] + r0 * width, g_index[in_band[g[nz]]], weight[nz].float()))
-    rgb = torch.cat(rgb_parts).reshape(height, width, 3)
-    alpha = (1.0 - torch.cat(t_parts)).reshape(height, width)
-    depth_img = torch.cat(depth_parts).reshape(height, width).to(out_dtype)
+        order = _take(order, torch.sort(_take(proj.depth, order), stable=True).indices)
+    g_index = _take(proj.index, order)  # [M] input indices, front to back
+    geometry = [_take(t, order) for t in (proj.mx, proj.my, proj.conic_a, proj.conic_b, proj.conic_c, opac)]
+    channels = [_take(colors[:, ch], g_index) for ch in range(3)]
+    with torch.no_grad():
+        mx, my, conic_a = (t.detach() for t in geometry[:3])
+        cxx, cyy = _take(proj.cxx, order), _take(proj.cyy, order)
+        fixed = _Fixed(
+            mx, my, cxx, _take(proj.cxy, order), cyy, conic_a, torch.log(geometry[5].detach()),
+            *(_take(t, order) for t in (r2, y0, y1, proj.depth)),
+        )  # fmt: skip
+        est = torch.clamp(2.0 * torch.sqrt(fixed.r2 * cxx) + 1.0, max=width)
+        bands = _plan_bands(fixed.y0, fixed.y1, est, height, settings.band_pairs)
+    plan = _Plan(fixed, bands, width, height, settings.dtype or out_dtype, settings, visibility, keep_contributions)
+    rgb, t_final, depth_img = _Rasterize.apply(*geometry, *channels, plan)
     vis_full = None
     if visibility:
         vis_full = torch.zeros(n, dtype=out_dtype, device=device)
-        vis_full[g_index] = vis.to(out_dtype)
+        vis_full[g_index] = plan.visible.to(out_dtype)
     contributions = None
-    if keep_contributions:
-        contributions = tuple(torch.cat(parts) for parts in zip(*contrib)) if contrib else None
-    return RenderOutput(rgb, alpha, depth_img, vis_full, n_pairs, contributions)
+    if keep_contributions and plan.contributions:
+        pixel, rank, weight = (torch.cat(parts) for parts in zip(*plan.contributions))
+        contributions = (pixel, _take(g_index, rank), weight)
+    return RenderOutput(
+        rgb.reshape(height, width, 3),
+        (1.0 - t_final).reshape(height, width),
+        depth_img.reshape(height, width).to(out_dtype),
+        vis_full,
+        plan.n_pairs,
+        contributions,
+    )
 
 
 class _SparseColor(torch.autograd.Function):
