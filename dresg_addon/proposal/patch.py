@@ -166,35 +166,49 @@ def timestep_scale(timestep: int, alpha_bar: torch.Tensor) -> int:  # alpha_bar 
     return 4 if abar < 0.1 else 2 if abar < 0.5 else 1
 
 
-def patch_sliced_wasserstein(
-    render: torch.Tensor,  # [1, 3, H, W]
-    style: torch.Tensor,  # [1, 3, Hs, Ws]
+def patch_projections(
+    image: torch.Tensor,  # [1, 3, H, W]
     directions: torch.Tensor,  # [P, 3, k, k], unit norm
     max_patches: int,
     offset: tuple[int, int] = (0, 0),
+) -> torch.Tensor:  # -> [P, N]
+    """Projections of the k x k patches of ``image`` on ``directions``; images with more than
+    ``max_patches`` patches are sampled on a strided grid shifted by ``offset``."""
+    k = directions.shape[-1]
+    count = max(1, (image.shape[-2] - k + 1) * (image.shape[-1] - k + 1))
+    step = max(1, math.ceil(math.sqrt(count / max_patches)))
+    dy = min(offset[0] % step, image.shape[-2] - k)
+    dx = min(offset[1] % step, image.shape[-1] - k)
+    return F.conv2d(image[..., dy:, dx:], directions, stride=step)[0].flatten(1)
+
+
+def patch_sliced_wasserstein(
+    render: torch.Tensor,  # [1, 3, H, W]
+    style: torch.Tensor | None,  # [1, 3, Hs, Ws]; None when ``style_sorted`` is given
+    directions: torch.Tensor,  # [P, 3, k, k], unit norm
+    max_patches: int,
+    offset: tuple[int, int] = (0, 0),
+    style_sorted: torch.Tensor | None = None,  # [P, Ns] the style's sorted projections, if already known
 ) -> torch.Tensor:
     """Sliced Wasserstein-2 energy between the k x k patches of ``render`` and of ``style``.
 
     SW = mean_p mean_i (sort(<d_p, x_i>)_i - Q_p(i))^2 over directions d_p and the N render patches x_i,
-    where Q_p is the style's sorted projections resampled to N quantiles (target detached). Images with
-    more than ``max_patches`` patches are sampled on a strided grid shifted by ``offset``.
+    where Q_p is the style's sorted projections resampled to N quantiles (target detached).
     """
-    k = directions.shape[-1]
-
-    def projections(image: torch.Tensor) -> torch.Tensor:  # [1, 3, H, W] -> [P, N]
-        count = max(1, (image.shape[-2] - k + 1) * (image.shape[-1] - k + 1))
-        step = max(1, math.ceil(math.sqrt(count / max_patches)))
-        dy = min(offset[0] % step, image.shape[-2] - k)
-        dx = min(offset[1] % step, image.shape[-1] - k)
-        return F.conv2d(image[..., dy:, dx:], directions, stride=step)[0].flatten(1)
-
-    projected = projections(render)
+    projected = patch_projections(render, directions, max_patches, offset)
     with torch.no_grad():
-        target, _ = projections(style).sort(-1)
+        target = style_sorted if style_sorted is not None else patch_projections(style, directions, max_patches, offset)
+        if style_sorted is None:
+            target = target.sort(-1).values
         if target.shape[-1] != projected.shape[-1]:
             target = F.interpolate(target[None], size=projected.shape[-1], mode="linear", align_corners=True)[0]
     ordered, _ = projected.sort(-1)
     return (ordered - target).pow(2).mean()
+
+
+def _digest(image: torch.Tensor) -> bytes:
+    """A content key of an image tensor (for caches that must not trust object identity)."""
+    return hashlib.blake2b(image.detach().contiguous().numpy().tobytes(), digest_size=16).digest()
 
 
 def _orthonormal(generator: torch.Generator, rows: int, cols: int) -> torch.Tensor:  # -> [rows, cols]
@@ -228,6 +242,7 @@ class PatchBackend(ProposalBackend):
         ]
         self._gains: dict[tuple[int, int], torch.Tensor] = {}
         self._references: OrderedDict[bytes, AttentionFeatures] = OrderedDict()
+        self._style_targets: OrderedDict[bytes, torch.Tensor] = OrderedDict()
         self._decoded: tuple[torch.Tensor, int, torch.Tensor] | None = None
 
     def _gain(self, height: int, width: int) -> torch.Tensor:  # -> [3, 2H, W + 1]
@@ -310,8 +325,7 @@ class PatchBackend(ProposalBackend):
         """Features of a fixed image (taken as is, no encode/decode round trip), cached by content and grid."""
         self._check_image(image)
         pixels = image.detach().float().clamp(0.0, 1.0).contiguous()
-        digest = hashlib.blake2b(pixels.numpy().tobytes(), digest_size=16).digest()
-        key = digest + repr((tuple(pixels.shape), self._grid_offset(timestep))).encode()
+        key = _digest(pixels) + repr((tuple(pixels.shape), self._grid_offset(timestep))).encode()
         if key in self._references:
             self._references.move_to_end(key)
             return self._references[key]
@@ -344,4 +358,15 @@ class PatchBackend(ProposalBackend):
         directions[: s.swd_projections] = (patch / patch.norm(dim=1, keepdim=True)).reshape(-1, 3, k, k)
         directions[s.swd_projections :, :, k // 2, k // 2] = colour / colour.norm(dim=1, keepdim=True)
         offset = tuple(int(x) for x in torch.randint(0, 64, (2,), generator=generator))
-        return s.swd_weight * patch_sliced_wasserstein(image, style, directions, s.swd_max_patches, offset)
+        # Every view at this timestep meets the same style target: sort the style's projections once.
+        key = _digest(style) + repr((timestep, factor, k, s.swd_max_patches)).encode()
+        if key not in self._style_targets:
+            with torch.no_grad():
+                projected = patch_projections(style, directions, s.swd_max_patches, offset)
+                self._style_targets[key] = projected.sort(-1).values
+            if len(self._style_targets) > REFERENCE_CACHE_SIZE:
+                self._style_targets.popitem(last=False)
+        target = self._style_targets[key]
+        return s.swd_weight * patch_sliced_wasserstein(
+            image, None, directions, s.swd_max_patches, offset, style_sorted=target
+        )

@@ -339,15 +339,18 @@ class _Rasterize(torch.autograd.Function):
                 )
         bg = torch.tensor(settings.background, dtype=dtype, device=device)
         rgb = torch.addcmul(rgb.t(), t_final[:, None], bg).contiguous()
-        ctx.save_for_backward(ca, cb, cc, opac)
-        ctx.bands, ctx.cols, ctx.t_final, ctx.plan = bands, cols, t_final, plan
+        t_out = t_final.to(red.dtype)
+        # Saved through save_for_backward: t_final may be the returned tensor, and an output kept as a
+        # plain ctx attribute would form a cycle through its grad_fn that never gets freed.
+        ctx.save_for_backward(ca, cb, cc, opac, t_final)
+        ctx.bands, ctx.cols, ctx.plan = bands, cols, plan
         ctx.mark_non_differentiable(pix_depth)
-        return rgb.to(red.dtype), t_final.to(red.dtype), pix_depth
+        return rgb.to(red.dtype), t_out, pix_depth
 
     @staticmethod
     def backward(ctx, grad_rgb, grad_t, _grad_depth):
-        ca, cb, cc, opac = ctx.saved_tensors
-        plan, cols, t_final = ctx.plan, ctx.cols, ctx.t_final
+        ca, cb, cc, opac, t_final = ctx.saved_tensors
+        plan, cols = ctx.plan, ctx.cols
         dtype, accumulate, width = plan.dtype, plan.settings.accumulate, plan.width
         device = grad_rgb.device
         f64 = torch.float64
