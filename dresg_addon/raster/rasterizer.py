@@ -260,7 +260,7 @@ def _band_samples(entries: _Entries, n_pix: int, dtype, settings) -> _Samples:
     owner, u, alpha, log_t = (_take(t, kept) for t in (owner, u, alpha, log_t))
     has = n_kept > 0
     last = torch.where(has, kept_first + n_kept - 1, -1)
-    log_final = torch.where(has, _at_last(log_after, torch.where(has, first + n_kept - 1, -1)), 0.0)
+    log_final = _at_last(log_after, torch.where(has, first + n_kept - 1, -1))  # log_after is not compacted
     return _Samples(kept_pixel, owner, _take(entries.gauss, owner), u, alpha, log_t, last, log_final)
 
 
