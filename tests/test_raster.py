@@ -408,3 +408,20 @@ def test_a_render_is_freed_with_its_outputs():
     (out.rgb.sum() + out.alpha.sum()).backward()
     del out
     assert alive() is None
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_matches_cpu():
+    scene = random_scene(200, 12)
+    cam = camera()
+    weights = torch.rand(30, 40, 3, dtype=F64, generator=torch.Generator().manual_seed(3))
+    results = []
+    for device in ("cpu", "cuda"):
+        args = [t.to(device).detach().requires_grad_(True) for t in tensors(scene)]
+        out = render(*args, cam)
+        (out.rgb * weights.to(device)).sum().backward()
+        results.append((out.rgb.detach().cpu(), [a.grad.cpu() for a in args]))
+    (rgb_cpu, grads_cpu), (rgb_gpu, grads_gpu) = results
+    assert torch.allclose(rgb_cpu, rgb_gpu, atol=1e-10)
+    for g_cpu, g_gpu in zip(grads_cpu, grads_gpu):
+        assert torch.allclose(g_cpu, g_gpu, rtol=1e-8, atol=1e-10)

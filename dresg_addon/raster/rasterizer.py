@@ -82,7 +82,7 @@ def _plan_bands(y0, y1, est_per_row, height, budget):
     """Row bands [r0, r1) whose estimated pair counts stay under ``budget`` (at least one row each)."""
     if y0.numel() == 0:
         return [(0, height)]
-    diff = torch.zeros(height + 1, dtype=torch.float64)
+    diff = torch.zeros(height + 1, dtype=torch.float64, device=y0.device)
     diff.index_add_(0, y0, est_per_row)
     diff.index_add_(0, y1 + 1, -est_per_row)
     per_row = torch.cumsum(diff[:-1], 0).tolist()
