@@ -127,6 +127,18 @@ def test_stylize_writes_the_scene_log_views_and_checkpoint_and_resumes(files, tm
     assert out.read_bytes() == first
 
 
+def test_geometry_on_cpu_says_what_it_costs(files, tmp_path, capsys):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("the note is for CPU runs")
+    assert cli.main(_stylize_args(files, tmp_path / "geo.ply", "--geometry")) == 0
+    err = capsys.readouterr().err
+    assert "note: geometry offsets are on: each of the 4 fit steps renders every active view" in err
+    assert cli.main(_stylize_args(files, tmp_path / "colour.ply", "--no-geometry")) == 0
+    assert "geometry offsets are on" not in capsys.readouterr().err
+
+
 def test_stylize_as_a_module_with_ablation_switches_and_quiet(files, tmp_path):
     out = tmp_path / "switches.ply"
     args = _stylize_args(files, out, "--no-feedback", "--no-pcgrad", "--schedule", "triangle", "--views", "0,2")
