@@ -28,15 +28,15 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import os
-import platform
-import resource
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+import harness  # first: it puts the repository on sys.path
+
+from dresg_addon.machine import load_average
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("DRESG_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -60,10 +60,6 @@ SD15_SIZE = (448, 320)
 
 
 # --- worker side (one subprocess per case): imports torch and the engine -----------------------------------
-
-
-def peak_rss_bytes() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
 
 
 def load_inputs(spec: dict):
@@ -139,7 +135,7 @@ def run_preset(spec: dict) -> dict:
         "post_s": sum(e["stage_seconds"] for e in post),
         "total_s": result.seconds,
         "config": config.to_dict(),
-        "peak_rss": peak_rss_bytes(),
+        "peak_rss": harness.peak_rss_bytes(),
     }
 
 
@@ -175,7 +171,7 @@ def run_sd15(spec: dict) -> dict:
     optimize_proposal(backend, state, timesteps[:1], style, image, EnergyTerms())  # warm-up, fills caches
     start = time.perf_counter()
     optimize_proposal(backend, state, timesteps, style, image, EnergyTerms())
-    return {"seconds_per_update": (time.perf_counter() - start) / len(timesteps), "peak_rss": peak_rss_bytes()}
+    return {"seconds_per_update": (time.perf_counter() - start) / len(timesteps), "peak_rss": harness.peak_rss_bytes()}
 
 
 def run_baseline(spec: dict) -> dict:
@@ -183,7 +179,7 @@ def run_baseline(spec: dict) -> dict:
 
     import dresg_addon.pipeline  # noqa: F401
 
-    return {"torch": torch.__version__, "threads": torch.get_num_threads(), "peak_rss": peak_rss_bytes()}
+    return {"torch": torch.__version__, "threads": torch.get_num_threads(), "peak_rss": harness.peak_rss_bytes()}
 
 
 WORKERS = {"preset": run_preset, "sd15": run_sd15, "baseline": run_baseline}
@@ -193,14 +189,7 @@ WORKERS = {"preset": run_preset, "sd15": run_sd15, "baseline": run_baseline}
 
 
 def call_worker(spec: dict) -> dict:
-    """Run one worker in a fresh interpreter; ``{'error': ...}`` when it fails (e.g. killed for memory)."""
-    done = subprocess.run(
-        [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)], capture_output=True, text=True
-    )
-    if done.returncode != 0:
-        tail = (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
-        return {"error": f"failed: {tail}"}
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return harness.call_worker(__file__, spec)
 
 
 def secs(value: float) -> str:
@@ -216,19 +205,9 @@ def verdict(ok: bool) -> str:
 
 
 def machine_lines(baseline: dict) -> list[str]:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as info:
-            names = [line.split(":", 1)[1].strip() for line in info if line.startswith("model name")]
-        cpu = names[0] if names else cpu
-    except OSError:
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
     return [
-        f"- machine: {cpu}, {cores} cores usable, Python {platform.python_version()}, torch "
-        f"{baseline.get('torch', '?')}, torch threads: {baseline.get('threads', '?')}",
-        f"- load average (1, 5, 15 min) at start: {load} (a shared machine makes every figure slower)",
+        harness.machine_line(baseline),
+        f"- load average (1, 5, 15 min) at start: {load_average()} (a shared machine makes every figure slower)",
         f"- baseline resident memory (interpreter + torch + engine): {gb(baseline.get('peak_rss', 0))}, "
         "included in every peak below",
     ]
@@ -268,16 +247,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     if args.worker:
-        sys.path.insert(0, str(REPO))
-        spec = json.loads(args.worker)
-        if spec.get("threads"):
-            import torch
+        return harness.run_worker(args.worker, WORKERS)
 
-            torch.set_num_threads(spec["threads"])
-        print(json.dumps(WORKERS[spec["kind"]](spec)))
-        return 0
-
-    sys.path.insert(0, str(REPO))
     from dresg_addon.config import PRESETS
 
     size = QUICK if args.quick else FULL

@@ -30,14 +30,15 @@ import argparse
 import json
 import math
 import os
-import platform
-import resource
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+import harness  # first: it puts the repository on sys.path
+
+from dresg_addon.machine import load_average
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("DRESG_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -155,10 +156,6 @@ def timed(fn, repeats: int) -> list[float]:
     return times
 
 
-def peak_rss_bytes() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
-
-
 def _tensors(arrays, grad: bool):
     import torch
 
@@ -221,7 +218,7 @@ def run_case(spec: dict) -> dict:
         (colour_only(colors) * weights).sum().backward()
 
     result["colour_step_s"] = timed(colour_step, max(repeats, 10))
-    result["peak_rss"] = peak_rss_bytes()
+    result["peak_rss"] = harness.peak_rss_bytes()
     return result
 
 
@@ -247,11 +244,10 @@ def run_knobs(spec: dict) -> dict:
     import numpy as np
     import torch
 
-    from dresg_addon.raster.knobs import knob_settings
+    from dresg_addon.raster.knobs import knob_settings, window_errors
 
     arrays, camera = load_case(spec)
     ref = np.load(spec["reference"])
-    x0, y0, w, h = spec["window"]
     weights = _loss_weights(camera)
     with torch.no_grad():
         exact = _render(arrays, camera, knob_settings("default", None), grad=False).rgb
@@ -260,14 +256,11 @@ def run_knobs(spec: dict) -> dict:
         settings = knob_settings(knob, value)
         with torch.no_grad():
             out = _render(arrays, camera, settings, grad=False)
-        rgb = out.rgb[y0 : y0 + h, x0 : x0 + w].double().numpy()
-        alpha = out.alpha[y0 : y0 + h, x0 : x0 + w].double().numpy()
         rows.append(
             {
                 "knob": knob,
                 "value": value,
-                "rgb_error": float(np.abs(rgb - ref["rgb"]).max()),
-                "alpha_error": float(np.abs(alpha - ref["alpha"]).max()),
+                **window_errors(out, ref, spec["window"]),
                 # The window may miss what a knob changes elsewhere: compare the whole image to the default.
                 "full_diff": float((out.rgb - exact).abs().max()),
                 "pairs": out.n_pairs,
@@ -275,7 +268,7 @@ def run_knobs(spec: dict) -> dict:
                 "fwd_bwd_s": timed(lambda s=settings: _forward_backward(arrays, camera, s, weights), spec["repeats"]),
             }
         )
-    return {"rows": rows, "peak_rss": peak_rss_bytes()}
+    return {"rows": rows, "peak_rss": harness.peak_rss_bytes()}
 
 
 def run_baseline(spec: dict) -> dict:
@@ -284,7 +277,7 @@ def run_baseline(spec: dict) -> dict:
 
     import dresg_addon.raster  # noqa: F401
 
-    return {"peak_rss": peak_rss_bytes(), "threads": torch.get_num_threads(), "torch": torch.__version__}
+    return {"peak_rss": harness.peak_rss_bytes(), "threads": torch.get_num_threads(), "torch": torch.__version__}
 
 
 WORKERS = {"case": run_case, "reference": run_reference, "knobs": run_knobs, "baseline": run_baseline}
@@ -295,16 +288,7 @@ WORKERS = {"case": run_case, "reference": run_reference, "knobs": run_knobs, "ba
 
 
 def call_worker(spec: dict) -> dict:
-    """Run one worker in a fresh interpreter; ``{'error': ...}`` when it fails (e.g. killed for memory)."""
-    done = subprocess.run(
-        [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)],
-        capture_output=True,
-        text=True,
-    )
-    if done.returncode != 0:
-        tail = (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
-        return {"error": f"failed: {tail}"}
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return harness.call_worker(__file__, spec)
 
 
 def gb(n_bytes: float) -> str:
@@ -328,23 +312,10 @@ def mark(ok: bool) -> str:
     return "met" if ok else "NOT met"
 
 
-def loadavg() -> str:
-    return ", ".join(f"{v:.2f}" for v in os.getloadavg())
-
-
 def machine_lines(baseline: dict) -> list[str]:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as info:
-            names = [line.split(":", 1)[1].strip() for line in info if line.startswith("model name")]
-        cpu = names[0] if names else cpu
-    except OSError:
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return [
-        f"- machine: {cpu}, {cores} cores usable, {platform.system()} {platform.release()}, Python "
-        f"{platform.python_version()}, torch {baseline.get('torch', '?')}, torch threads: {baseline.get('threads', '?')}",
-        f"- load average (1, 5, 15 min) at start: {loadavg()}",
+        harness.machine_line(baseline, with_os=True),
+        f"- load average (1, 5, 15 min) at start: {load_average()}",
         f"- baseline resident memory (interpreter + torch + engine, nothing rendered): "
         f"{gb(baseline.get('peak_rss', 0))} GB, included in every peak below",
         "- times: median (best) of the repeats, seconds unless marked ms",
@@ -425,7 +396,6 @@ def knob_table(rows: list[dict], per_process_memory: bool) -> list[str]:
 
 def knob_section(knob_case: dict, name: str, repeats: int, quick: bool) -> list[str]:
     """The error-against-run-time table: one reference run, then the knobs (one process each unless quick)."""
-    sys.path.insert(0, str(REPO))
     from dresg_addon.raster.knobs import SPEED_KNOBS
 
     width, height = knob_case["width"], knob_case["height"]
@@ -476,14 +446,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     if args.worker:
-        sys.path.insert(0, str(REPO))
-        spec = json.loads(args.worker)
-        if spec.get("threads"):
-            import torch
-
-            torch.set_num_threads(spec["threads"])
-        print(json.dumps(WORKERS[spec["kind"]](spec)))
-        return 0
+        return harness.run_worker(args.worker, WORKERS)
 
     repeats = max(1, args.repeats or (1 if args.quick else 3))
     sizes = [int(s) for s in args.sizes.split(",")] if args.sizes else list(QUICK_SIZES if args.quick else FULL_SIZES)
@@ -527,7 +490,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(section), flush=True)
         out += section
 
-    footer = ["", f"Total {time.perf_counter() - started:.0f} s; load average at the end: {loadavg()}."]
+    footer = ["", f"Total {time.perf_counter() - started:.0f} s; load average at the end: {load_average()}."]
     print("\n".join(footer))
     out += footer
     if args.markdown:

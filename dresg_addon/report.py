@@ -43,7 +43,8 @@ import torch
 from .camera import Camera, look_at
 from .config import PRESETS, StylizeConfig
 from .errors import ConfigError, with_path
-from .raster.knobs import SPEED_KNOBS, knob_settings
+from .machine import cpu_model, load_average, usable_cores
+from .raster.knobs import SPEED_KNOBS, knob_settings, window_errors
 from .scene import GaussianScene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -197,19 +198,10 @@ def load_inputs(options: ReportOptions) -> ReportInputs:
 
 def machine_description() -> str:
     """CPU model, usable cores, OS, Python and torch versions, and the load average now."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            names = [line.split(":", 1)[1].strip() for line in f if line.startswith("model name")]
-        cpu = names[0] if names else cpu
-    except OSError:
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    load = ", ".join(f"{v:.1f}" for v in os.getloadavg()) if hasattr(os, "getloadavg") else "n/a"
     return (
-        f"{cpu}, {cores} cores usable, {platform.system()} {platform.release()}, Python "
+        f"{cpu_model()}, {usable_cores()} cores usable, {platform.system()} {platform.release()}, Python "
         f"{platform.python_version()}, torch {torch.__version__} ({torch.get_num_threads()} threads), "
-        f"load average {load} (1, 5, 15 min)"
+        f"load average {load_average(1)} (1, 5, 15 min)"
     )
 
 
@@ -263,7 +255,6 @@ def rasterizer_error_vs_time(
     from .raster.reference import reference_render
     from .raster.sh import colors_from_sh
 
-    x0, y0, w, h = window
     tensors = [_torch(a) for a in (scene.means, scene.quats, scene.log_scales, scene.opacity_logits)]
     center = torch.as_tensor(camera.center, dtype=torch.float32)
     with torch.no_grad():
@@ -296,14 +287,11 @@ def rasterizer_error_vs_time(
         seconds = time.perf_counter() - start
         if repeats > 1:
             seconds = min(seconds, _fastest_time(lambda settings=settings: forward(settings), repeats - 1))
-        rgb = out.rgb[y0 : y0 + h, x0 : x0 + w].double().numpy()
-        alpha = out.alpha[y0 : y0 + h, x0 : x0 + w].double().numpy()
         rows.append(
             {
                 "knob": knob,
                 "value": value,
-                "rgb_error": float(np.abs(rgb - reference["rgb"]).max()),
-                "alpha_error": float(np.abs(alpha - reference["alpha"]).max()),
+                **window_errors(out, reference, window),
                 "pairs": out.n_pairs,
                 "seconds": seconds,
             }
@@ -862,9 +850,8 @@ def build_report(options: ReportOptions, say: Callable[[str], None] | None = Non
         ]
     else:
         lines += ["Skipped (--no-stability).", ""]
-    load = ", ".join(f"{v:.1f}" for v in os.getloadavg()) if hasattr(os, "getloadavg") else "n/a"
     lines.append(
-        f"Report written in {time.perf_counter() - started:.0f} s; load average at the end {load}. Times are "
+        f"Report written in {time.perf_counter() - started:.0f} s; load average at the end {load_average(1)}. Times are "
         "wall-clock: other work on the machine slows them, so compare runs of one report only."
     )
     path = out / "report.md"

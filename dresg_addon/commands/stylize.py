@@ -132,36 +132,35 @@ def run(args) -> int:
     out = Path(args.out)
     log_path = Path(args.log) if args.log else out.with_suffix(".log.jsonl")
     checkpoint_dir = Path(args.checkpoint_dir) if args.checkpoint_dir else out.with_suffix(".checkpoint")
-    if config.proposal == "sd15" and not args.quiet:
+    if not args.quiet and (config.proposal == "sd15" or config.optimize_geometry):
         import torch
 
+        on_cpu = not torch.cuda.is_available()
+    else:
+        on_cpu = False
+    if on_cpu and config.proposal == "sd15":
         from ..proposal.sd15 import estimate_cpu_seconds
 
-        if not torch.cuda.is_available():
-            estimate = estimate_cpu_seconds(
-                views=config.max_views or 16,
-                stages=config.stages,
-                updates_per_stage=config.updates_per_stage,
-                width=config.proposal_width,
-                height=config.proposal_height,
-            )
-            duration = f"{estimate / 3600:.1f} h" if estimate >= 3600 else f"{estimate / 60:.0f} min"
-            print(
-                f"note: sd15 on this CPU takes about {duration} for this schedule (estimate); the patch backend takes minutes",
-                file=sys.stderr,
-            )
-
-    if config.optimize_geometry and not args.quiet:
-        import torch
-
-        if not torch.cuda.is_available():
-            steps = config.stages * config.fit_steps + config.post_steps
-            print(
-                f"note: geometry offsets are on: each of the {steps} fit steps renders every active view with "
-                "gradients (about 0.6 s per view for a 270k-splat scene at 448x320 on 2 cores, so hours with 16 "
-                "views); --preset cpu keeps the schedule with colour-only fitting. The ETA follows each stage.",
-                file=sys.stderr,
-            )
+        estimate = estimate_cpu_seconds(
+            views=config.max_views or 16,
+            stages=config.stages,
+            updates_per_stage=config.updates_per_stage,
+            width=config.proposal_width,
+            height=config.proposal_height,
+        )
+        duration = f"{estimate / 3600:.1f} h" if estimate >= 3600 else f"{estimate / 60:.0f} min"
+        print(
+            f"note: sd15 on this CPU takes about {duration} for this schedule (estimate); the patch backend takes minutes",
+            file=sys.stderr,
+        )
+    if on_cpu and config.optimize_geometry:
+        steps = config.stages * config.fit_steps + config.post_steps
+        print(
+            f"note: geometry offsets are on: each of the {steps} fit steps renders every active view with "
+            "gradients (about 0.6 s per view for a 270k-splat scene at 448x320 on 2 cores, so hours with 16 "
+            "views); --preset cpu keeps the schedule with colour-only fitting. The ETA follows each stage.",
+            file=sys.stderr,
+        )
 
     def progress(p):
         # One line per finished stage (and the post stage), with its last fit loss and the ETA.

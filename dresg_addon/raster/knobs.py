@@ -7,9 +7,10 @@ both measure these, so a user sees what each knob costs in error and in time.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
-from .rasterizer import RasterSettings
+from .rasterizer import RasterSettings, RenderOutput
 
 SPEED_KNOBS = (
     ("default", None),  # per-sample arithmetic in the colours' dtype, float64 scans
@@ -39,3 +40,14 @@ def knob_settings(knob: str, value) -> RasterSettings:
     if knob == "dtype+accumulate":
         return RasterSettings(dtype=getattr(torch, value), accumulate=getattr(torch, value))
     return RasterSettings(**{knob: value})
+
+
+def window_errors(out: RenderOutput, reference: dict, window: tuple[int, int, int, int]) -> dict[str, float]:
+    """Max abs error of a full-image render against the reference's ``rgb`` and ``alpha`` on its window (x0, y0, w, h)."""
+    x0, y0, w, h = window
+    rgb = out.rgb[y0 : y0 + h, x0 : x0 + w].double().cpu().numpy()
+    alpha = out.alpha[y0 : y0 + h, x0 : x0 + w].double().cpu().numpy()
+    return {
+        "rgb_error": float(np.abs(rgb - reference["rgb"]).max()),
+        "alpha_error": float(np.abs(alpha - reference["alpha"]).max()),
+    }

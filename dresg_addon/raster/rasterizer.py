@@ -101,21 +101,21 @@ def _take(values, index):
     return torch.index_select(values, 0, index)
 
 
-def _owners(starts, total: int):
-    """For each of ``total`` slots, the last group whose start (non-decreasing ``starts``) is <= the slot.
+def _groups(counts):
+    """For group sizes ``counts`` [G]: (owner [P], starts [G], P) with owner[p] the group of slot p.
 
-    With starts = cumsum(counts) - counts this expands groups to their members (empty groups skipped),
-    like repeat_interleave but several times faster on CPU.
+    Like repeat_interleave(arange(G), counts), empty groups skipped, but several times faster on CPU:
+    a slot's group is the number of group starts at or before it, minus one.
     """
+    starts = torch.cumsum(counts, 0) - counts
+    total = int(starts[-1] + counts[-1]) if counts.numel() else 0
     marks = torch.bincount(starts, minlength=total + 1)[:total]
-    return torch.cumsum(marks, 0) - 1
+    return torch.cumsum(marks, 0) - 1, starts, total
 
 
 def _expand(counts):
     """For counts [E]: (owner [P], local offset [P]) with P = counts.sum()."""
-    starts = torch.cumsum(counts, 0) - counts
-    total = int(starts[-1] + counts[-1]) if counts.numel() else 0
-    owner = _owners(starts, total)
+    owner, starts, total = _groups(counts)
     local = torch.arange(total, device=counts.device) - _take(starts, owner)
     return owner, local
 
@@ -220,11 +220,8 @@ def _band_samples(entries: _Entries, n_pix: int, dtype, settings) -> _Samples:
     Samples whose alpha rounds below 1/255 at the span's ends get alpha 0 and stay, inert (their weight
     and every gradient through them are 0), which spares a compaction.
     """
-    span = entries.span
-    starts = torch.cumsum(span, 0) - span
-    total = int(starts[-1] + span[-1]) if span.numel() else 0
-    owner = _owners(starts, total)
-    pixel = _take(entries.pixel0 - starts, owner) + torch.arange(total, device=span.device)
+    owner, starts, total = _groups(entries.span)
+    pixel = _take(entries.pixel0 - starts, owner) + torch.arange(total, device=starts.device)
     # Entries are Gaussian-major, so candidates arrive in depth order: a stable sort by pixel suffices.
     key = torch.int16 if n_pix <= 2**15 else torch.int32 if n_pix <= 2**31 else torch.int64
     pixel, order = torch.sort(pixel.to(key), stable=True)
@@ -252,9 +249,7 @@ def _band_samples(entries: _Entries, n_pix: int, dtype, settings) -> _Samples:
     if settings.max_per_pixel > 0:
         include &= torch.arange(pixel.numel(), device=pixel.device) - _take(first, pixel) < settings.max_per_pixel
     n_kept = torch.zeros(n_pix, dtype=torch.int64, device=pixel.device).index_add_(0, pixel, include.long())
-    kept_first = torch.cumsum(n_kept, 0) - n_kept
-    n_total = int(kept_first[-1] + n_kept[-1]) if n_pix else 0
-    kept_pixel = _owners(kept_first, n_total)
+    kept_pixel, kept_first, n_total = _groups(n_kept)
     kept = _take(first - kept_first, kept_pixel) + torch.arange(n_total, device=pixel.device)
     log_t = (log_after - log1m).to(dtype)  # in front of the sample
     owner, u, alpha, log_t = (_take(t, kept) for t in (owner, u, alpha, log_t))
