@@ -16,6 +16,7 @@ import torch
 from .errors import CameraError, ImageError, NumericalError
 
 EIGEN_FLOOR = 1e-6  # variance floor (std 1e-3, a quarter of an 8-bit level) for the inverse root
+COVERAGE_LOW, COVERAGE_HIGH = 0.25, 0.75  # alpha range over which a pixel goes from kept to recoloured
 
 
 @dataclass(frozen=True)
@@ -33,6 +34,14 @@ class ColorTransform:
     def apply_to_images(self, images: torch.Tensor) -> torch.Tensor:  # [..., 3, H, W] -> same; not clamped
         """The map on images with RGB in axis -3."""
         return self.apply_to_colors(images.movedim(-3, -1)).movedim(-1, -3)
+
+
+def coverage_weight(alpha: torch.Tensor) -> torch.Tensor:  # [..., H, W] -> same
+    """How much of a restyled image a pixel of a render takes: smoothstep of its alpha from COVERAGE_LOW to
+    COVERAGE_HIGH. Background (alpha 0) and faint floaters over it (a few percent) keep the render's
+    colour; silhouettes blend."""
+    t = ((alpha - COVERAGE_LOW) / (COVERAGE_HIGH - COVERAGE_LOW)).clamp(0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
 
 
 def symmetric_sqrt(cov: torch.Tensor, floor: float = 0.0, inverse: bool = False) -> torch.Tensor:  # [3, 3]
@@ -114,3 +123,33 @@ def _masked_pixels(images: torch.Tensor, mask: torch.Tensor | None, threshold: f
             raise CameraError("no render pixel is covered by the scene (empty mask); the cameras see nothing")
         raise ImageError("the style image mask keeps no pixel")
     return pixels
+
+
+def match_color_histograms(pixels: torch.Tensor, style_pixels: torch.Tensor) -> torch.Tensor:  # [M, 3], [K, 3]
+    """Exact 1-D histogram matching of ``pixels`` to ``style_pixels`` along the style's colour principal axes.
+
+    Both sets are expressed in the eigenbasis of the style's colour covariance; along each axis the
+    pixel of rank i takes the style's quantile (i + 0.5) / M (linear interpolation between sorted style
+    values); the result goes back to RGB. Ties keep their order (stable sort), so a flat input maps to
+    the style's quantiles in pixel order. Float64 inside; the output is not clamped.
+    """
+    if pixels.ndim != 2 or pixels.shape[1] != 3 or style_pixels.ndim != 2 or style_pixels.shape[1] != 3:
+        raise ValueError(f"expected [M, 3] and [K, 3] pixels, got {list(pixels.shape)} and {list(style_pixels.shape)}")
+    if pixels.shape[0] == 0:
+        return pixels.clone()
+    if style_pixels.shape[0] == 0:
+        raise ImageError("the style image has no pixels to match colour histograms to")
+    mu_s, cov_s = color_moments(style_pixels)
+    axes = torch.linalg.eigh((cov_s + cov_s.T) / 2.0).eigenvectors  # [3, 3], columns
+    x = (pixels.to(torch.float64) - mu_s) @ axes
+    s = torch.sort((style_pixels.to(torch.float64) - mu_s) @ axes, dim=0).values  # [K, 3]
+    count, k = x.shape[0], s.shape[0]
+    position = ((torch.arange(count, dtype=torch.float64) + 0.5) * k / count - 0.5).clamp(0.0, k - 1)
+    low = position.floor().long()
+    high = (low + 1).clamp_max(k - 1)
+    frac = (position - low)[:, None]
+    quantiles = s[low] * (1.0 - frac) + s[high] * frac  # [M, 3], per axis, by rank
+    order = torch.sort(x, dim=0, stable=True).indices  # [M, 3]
+    matched = torch.empty_like(x)
+    matched.scatter_(0, order, quantiles)
+    return (matched @ axes.T + mu_s).to(pixels.dtype)

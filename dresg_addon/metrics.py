@@ -7,10 +7,10 @@ DINO-C when the user has local weights.
 =======================================  =========  ==================================================
 metric                                   better     compares
 =======================================  =========  ==================================================
-:func:`sliced_wasserstein_colors`        lower      colour distribution of a render and the style image
-:func:`sliced_wasserstein_patches`       lower      7 x 7 patch distribution, render and style image
-:func:`ssim_per_image`                   higher     stylized and base render from the same camera
-:func:`gradient_structure_similarity`    higher     stylized and base render from the same camera
+:func:`sliced_wasserstein_colors`        lower      colour distribution of a render and the style image (masks)
+:func:`sliced_wasserstein_patches`       lower      7 x 7 patch distribution, render and style image (masks)
+:func:`ssim_per_image`                   higher     stylized and base render from the same camera (mask)
+:func:`gradient_structure_similarity`    higher     stylized and base render from the same camera (mask)
 :func:`consistency_rmse`                 lower      a render warped exactly into a later view, and that view
 :func:`measure_render`                   higher FPS render speed and peak memory of a scene
 :func:`read_stylize_log`                 lower      optimisation time and peak memory from the stylizer's log
@@ -20,6 +20,11 @@ Images are torch [3, H, W] or [B, 3, H, W] in [0, 1] (``warp_to`` takes renders 
 rasterizer's layout). Functions work in float32 and float64 and never return NaN: degenerate inputs
 (flat images, empty views) have defined values, and a consistency pair without valid pixels reports
 ``None`` with a coverage of 0.
+
+The style and content metrics take optional coverage masks, [H, W] per image: bool, or alpha in
+[0, 1] where alpha > ``ALPHA_THRESHOLD`` counts as covered. An object rendered on a black background
+is then measured on the pixels it covers, not on the background. An image whose mask covers nothing
+is measured as if unmasked (all pixels), so the value stays defined.
 """
 
 from __future__ import annotations
@@ -64,6 +69,33 @@ def _image_list(images, name: str) -> list[torch.Tensor]:
     if not out:
         raise ValueError(f"{name}: no images")
     return out
+
+
+def _coverage(mask, hw: tuple[int, int], name: str, device) -> torch.Tensor:  # -> [H, W] bool
+    """One [H, W] mask as bool: kept as is when bool, else alpha > ``ALPHA_THRESHOLD``."""
+    mask = torch.as_tensor(mask, device=device)
+    if tuple(mask.shape) != hw:
+        raise ValueError(f"{name}: each mask must be [H, W] = {list(hw)} like its image, got shape {tuple(mask.shape)}")
+    return mask if mask.dtype == torch.bool else mask > ALPHA_THRESHOLD
+
+
+def _mask_list(masks, images: list[torch.Tensor]) -> list[torch.Tensor | None]:
+    """None, [B, H, W] or a list of [H, W] (None: that image unmasked) as one bool mask (or None) per image."""
+    if masks is None:
+        return [None] * len(images)
+    if isinstance(masks, torch.Tensor):
+        if masks.ndim == 2:
+            masks = masks[None]
+        if masks.ndim != 3:
+            raise ValueError(f"masks must be [B, H, W] or a list of [H, W], got shape {tuple(masks.shape)}")
+        masks = list(masks.unbind(0))
+    masks = list(masks)
+    if len(masks) != len(images):
+        raise ValueError(f"masks: got {len(masks)} masks for {len(images)} images")
+    return [
+        None if mask is None else _coverage(mask, tuple(image.shape[-2:]), "masks", image.device)
+        for image, mask in zip(images, masks)
+    ]
 
 
 def _directions(dim: int, n: int, seed: int, dtype, device) -> torch.Tensor:  # -> [dim, n]
@@ -138,14 +170,19 @@ def sliced_wasserstein(
     return sliced_wasserstein_sorted(sorted_projections(x, directions), sorted_projections(y, directions))
 
 
-def _sliced_wasserstein_batch(images, style, samples, n_projections: int, seed: int) -> torch.Tensor:  # -> [B]
-    """SW_2 of ``samples(image)`` against ``samples(style)`` for each image; the style side is sorted once."""
+def _sliced_wasserstein_batch(images, style, samples, n_projections: int, seed: int, masks=None) -> torch.Tensor:
+    """SW_2 of ``samples(image, mask)`` against ``samples(style, None)`` for each image ([B]); the style side
+    is sorted once and never masked."""
     images = _image_list(images, "images")
-    reference = samples(_image_list(style, "style")[0])
+    masks = _mask_list(masks, images)
+    reference = samples(_image_list(style, "style")[0], None)
     directions = _directions(reference.shape[1], n_projections, seed, images[0].dtype, images[0].device)
     reference = sorted_projections(reference.to(images[0].device), directions)
     return torch.stack(
-        [sliced_wasserstein_sorted(sorted_projections(samples(image), directions), reference) for image in images]
+        [
+            sliced_wasserstein_sorted(sorted_projections(samples(image, mask), directions), reference)
+            for image, mask in zip(images, masks)
+        ]
     )
 
 
@@ -159,19 +196,38 @@ def _subsample_index(n: int, max_samples: int | None, seed: int) -> torch.Tensor
     return torch.randperm(n, generator=generator)[:max_samples]
 
 
-def _colour_samples(image: torch.Tensor, max_samples: int | None, seed: int) -> torch.Tensor:  # [3, H, W] -> [n, 3]
+def _kept_subset(kept: torch.Tensor | None, n: int, max_samples: int | None, seed: int) -> torch.Tensor | None:
+    """Indices into range(n): the kept ones (bool [n], None: all; none kept: all), then a fixed random subset.
+
+    Without a mask this is :func:`_subsample_index` itself; with one, the subset is drawn the same way
+    among the kept indices, so an all-true mask gives exactly the unmasked samples.
+    """
+    if kept is None or not bool(kept.any()):
+        return _subsample_index(n, max_samples, seed)
+    kept = kept.nonzero()[:, 0]
+    index = _subsample_index(kept.numel(), max_samples, seed)
+    return kept if index is None else kept[index.to(kept.device)]
+
+
+def _colour_samples(image: torch.Tensor, max_samples: int | None, seed: int, mask=None) -> torch.Tensor:
+    """[3, H, W] -> [n, 3]: all (or a fixed random subset of) the pixels, the covered ones under a mask."""
     pixels = image.reshape(3, -1).T
-    index = _subsample_index(pixels.shape[0], max_samples, seed)
-    return pixels if index is None else pixels[index]
+    index = _kept_subset(None if mask is None else mask.reshape(-1), pixels.shape[0], max_samples, seed)
+    return pixels if index is None else pixels[index.to(pixels.device)]
 
 
-def _patch_samples(image: torch.Tensor, patch: int, max_samples: int | None, seed: int) -> torch.Tensor:
-    """[3, H, W] -> [n, 3 patch^2]: all (or a fixed random subset of) the patch x patch windows."""
+def _patch_samples(image: torch.Tensor, patch: int, max_samples: int | None, seed: int, mask=None) -> torch.Tensor:
+    """[3, H, W] -> [n, 3 patch^2]: all (or a fixed random subset of) the patch x patch windows; under a
+    mask, the windows whose every pixel is covered."""
     _, h, w = image.shape
     if h < patch or w < patch:
         raise ValueError(f"image of size {w}x{h} is smaller than the {patch}x{patch} patch")
     rows, cols = h - patch + 1, w - patch + 1
-    index = _subsample_index(rows * cols, max_samples, seed)
+    kept = None
+    if mask is not None:  # a window is kept when no pixel of it is background
+        background = (~mask).to(image.dtype)[None, None]
+        kept = F.max_pool2d(background, patch, stride=1)[0, 0].reshape(-1) == 0  # [rows * cols]
+    index = _kept_subset(kept, rows * cols, max_samples, seed)
     if index is None:
         index = torch.arange(rows * cols)
     index = index.to(image.device)
@@ -194,6 +250,7 @@ def sliced_wasserstein_colors(
     n_projections: int = 128,
     seed: int = 0,
     max_samples: int | None = 65536,
+    masks=None,  # None, [B, H, W] or a list of [H, W]: bool, or alpha
 ) -> torch.Tensor:  # [B]
     """Style distance of colours: SW_2 between the RGB pixels of each image and of ``style``.
 
@@ -203,12 +260,20 @@ def sliced_wasserstein_colors(
     exactly 0; 65536 samples estimate the distance to well under 1% of typical values, and sorting
     stays fast.
 
+    With ``masks`` (per image, bool or alpha > ``ALPHA_THRESHOLD``) the cloud is {I(p) : p covered},
+    subsampled the same way among the covered pixels (the count and ``seed`` fix the subset); an
+    image with no covered pixel uses all its pixels. ``style`` is never masked.
+
     >>> style = torch.rand(3, 16, 16)
     >>> sliced_wasserstein_colors(torch.stack([style, style.flip(-1), 0.5 * style]), style)[:2].tolist()
     [0.0, 0.0]
+    >>> on_black = torch.cat([style, torch.zeros(3, 16, 8)], -1)  # the object, then background
+    >>> covered = torch.arange(24) < 16
+    >>> float(sliced_wasserstein_colors(on_black, style, masks=covered.expand(16, 24))[0])
+    0.0
     """
     return _sliced_wasserstein_batch(
-        images, style, lambda image: _colour_samples(image, max_samples, seed), n_projections, seed
+        images, style, lambda image, mask: _colour_samples(image, max_samples, seed, mask), n_projections, seed, masks
     )
 
 
@@ -219,12 +284,17 @@ def sliced_wasserstein_patches(
     n_projections: int = 128,
     seed: int = 0,
     max_samples: int | None = 16384,
+    masks=None,  # None, [B, H, W] or a list of [H, W]: bool, or alpha
 ) -> torch.Tensor:  # [B]
     """Style distance of local texture: SW_2 between the patch x patch RGB windows of each image and of ``style``.
 
     Each window is a point in R^(3 patch^2) (raw values, colour included); SW_2 as in
     :func:`sliced_wasserstein`. ``max_samples`` windows are drawn at fixed random positions that
     depend only on the image size and ``seed`` (identical images give exactly 0).
+
+    With ``masks`` (per image, bool or alpha > ``ALPHA_THRESHOLD``) only the windows whose every pixel
+    is covered count (a window touching the background is left out), subsampled the same way among
+    them; an image without a fully covered window uses all its windows. ``style`` is never masked.
 
     >>> style = torch.rand(3, 24, 24)
     >>> float(sliced_wasserstein_patches(style[None], style)[0])
@@ -236,7 +306,12 @@ def sliced_wasserstein_patches(
     if patch < 1:
         raise ValueError(f"patch size must be at least 1, got {patch}")
     return _sliced_wasserstein_batch(
-        images, style, lambda image: _patch_samples(image, patch, max_samples, seed), n_projections, seed
+        images,
+        style,
+        lambda image, mask: _patch_samples(image, patch, max_samples, seed, mask),
+        n_projections,
+        seed,
+        masks,
     )
 
 
@@ -252,15 +327,44 @@ def _pair_batch(a: torch.Tensor, b: torch.Tensor, name: str) -> tuple[torch.Tens
     return (a[None], b[None]) if a.ndim == 3 else (a, b)
 
 
-def ssim_per_image(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # [B, 3, H, W] x2 -> [B] (or scalar)
+def _pair_mask(mask, batch: torch.Tensor, name: str) -> torch.Tensor | None:  # -> [B, H, W] bool
+    """[H, W] (every pair) or [B, H, W] mask as bool (alpha > ``ALPHA_THRESHOLD``); an empty one covers all."""
+    if mask is None:
+        return None
+    b, _, h, w = batch.shape
+    mask = torch.as_tensor(mask, device=batch.device)
+    if tuple(mask.shape) not in ((h, w), (b, h, w)):
+        raise ValueError(f"{name}: mask must be [H, W] or [B, H, W] = {[b, h, w]}, got shape {tuple(mask.shape)}")
+    covered = (mask if mask.dtype == torch.bool else mask > ALPHA_THRESHOLD).expand(b, h, w)
+    return covered | ~covered.flatten(1).any(1)[:, None, None]
+
+
+def ssim_per_image(
+    a: torch.Tensor,  # [3, H, W] or [B, 3, H, W]
+    b: torch.Tensor,  # same shape
+    mask=None,  # [H, W] or [B, H, W]: bool, or alpha
+) -> torch.Tensor:  # scalar or [B]
     """Mean SSIM of each image pair (the 3DGS SSIM of :func:`dresg_addon.losses.ssim_map`).
+
+    With ``mask`` (bool, or alpha > ``ALPHA_THRESHOLD``): both images are set to 0 outside it (as on
+    a black background, so the background cannot change the value), and SSIM = sum_{p covered, c}
+    SSIM_c(p) / (3 |covered|). An empty mask counts as covering every pixel.
 
     >>> x = torch.rand(2, 3, 16, 16)
     >>> ssim_per_image(x, x).tolist()
     [1.0, 1.0]
+    >>> covered = torch.arange(16) < 8  # left half; the right halves differ
+    >>> round(float(ssim_per_image(x[0], x[1] * ~covered + x[0] * covered, covered.expand(16, 16))), 6)
+    1.0
     """
     ab, bb = _pair_batch(a, b, "ssim_per_image")
-    out = ssim_map(ab, bb).flatten(1).mean(1)
+    covered = _pair_mask(mask, ab, "ssim_per_image")
+    if covered is None:
+        out = ssim_map(ab, bb).flatten(1).mean(1)
+    else:
+        keep = covered[:, None]
+        smap = ssim_map(torch.where(keep, ab, 0.0), torch.where(keep, bb, 0.0))
+        out = torch.where(keep, smap, 0.0).flatten(1).sum(1) / (3 * covered.flatten(1).sum(1)).to(smap.dtype)
     return out if a.ndim == 4 else out[0]
 
 
@@ -281,6 +385,7 @@ def gradient_structure_similarity(
     a: torch.Tensor,  # [3, H, W] or [B, 3, H, W]
     b: torch.Tensor,  # same shape
     floor: float = GRADIENT_FLOOR,
+    mask=None,  # [H, W] or [B, H, W]: bool, or alpha
 ) -> torch.Tensor:  # scalar or [B]
     """Gradient-structure similarity of two images, in [0, 1]; 1 for the same edges.
 
@@ -292,6 +397,10 @@ def gradient_structure_similarity(
     Two flat images give 1; a flat image against a textured one gives about
     sqrt(C / sum |g|^2), near 0.
 
+    With ``mask`` (bool, or alpha > ``ALPHA_THRESHOLD``): both images are set to 0 outside it (as on
+    a black background), and the sums run over the covered pixels only, with C = |covered| floor^2.
+    An empty mask counts as covering every pixel.
+
     >>> x = torch.rand(3, 32, 32, dtype=torch.float64)
     >>> round(float(gradient_structure_similarity(x, 0.2 + 0.5 * x)), 3)  # contrast change
     1.0
@@ -299,11 +408,20 @@ def gradient_structure_similarity(
     True
     """
     ab, bb = _pair_batch(a, b, "gradient_structure_similarity")
-    ga, gb = sobel_gradients(ab), sobel_gradients(bb)
-    c = ab.shape[-1] * ab.shape[-2] * floor**2
-    dot = (ga * gb).sum(1).abs().flatten(1).sum(1)
-    norm_a = (ga * ga).flatten(1).sum(1)
-    norm_b = (gb * gb).flatten(1).sum(1)
+    covered = _pair_mask(mask, ab, "gradient_structure_similarity")
+    if covered is None:
+        ga, gb = sobel_gradients(ab), sobel_gradients(bb)
+        c = ab.shape[-1] * ab.shape[-2] * floor**2
+        dot = (ga * gb).sum(1).abs().flatten(1).sum(1)
+        norm_a = (ga * ga).flatten(1).sum(1)
+        norm_b = (gb * gb).flatten(1).sum(1)
+    else:
+        keep = covered[:, None]
+        ga, gb = sobel_gradients(torch.where(keep, ab, 0.0)), sobel_gradients(torch.where(keep, bb, 0.0))
+        c = covered.flatten(1).sum(1).to(ga.dtype) * floor**2
+        dot = torch.where(covered, (ga * gb).sum(1).abs(), 0.0).flatten(1).sum(1)
+        norm_a = torch.where(covered, (ga * ga).sum(1), 0.0).flatten(1).sum(1)
+        norm_b = torch.where(covered, (gb * gb).sum(1), 0.0).flatten(1).sum(1)
     out = ((dot + c) / torch.sqrt((norm_a + c) * (norm_b + c))).clamp(0.0, 1.0)
     return out if a.ndim == 4 else out[0]
 

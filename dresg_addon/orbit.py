@@ -35,14 +35,17 @@ def orbit_cameras(
     radius_scale: float = 1.0,
     up=(0.0, -1.0, 0.0),
     quantile: float = 0.02,
+    azimuth_offset_deg: float = 0.0,
 ) -> list[Camera]:
     """``n`` cameras on a ring around the robust box of the scene, all looking at its centre.
 
-    The box is :func:`robust_bounds`; its bounding sphere (radius ``r``) fits the view at distance
-    ``radius_scale * r / sin(theta)``, with ``theta`` the smaller of the half fields of view. ``fov_deg``
-    is horizontal; ``up`` is the world direction shown up (-y: COLMAP worlds are y-down);
-    ``elevation_deg`` lifts the ring toward ``up``. The first camera looks along the world +z axis as
-    seen from the ring (or +x when up is along z), the next ones move to its right. Deterministic.
+        The box is :func:`robust_bounds`; its bounding sphere (radius ``r``) fits the view at distance
+        ``radius_scale * r / sin(theta)``, with ``theta`` the smaller of the half fields of view. ``fov_deg``
+        is horizontal; ``up`` is the world direction shown up (-y: COLMAP worlds are y-down);
+        ``elevation_deg`` lifts the ring toward ``up``. The first camera looks along the world +z axis as
+        seen from the ring (or +x when up is along z), turned by ``azimuth_offset_deg``; the next ones move to its
+    right. Deterministic. An offset of half a step (180 / n degrees) gives the novel views between a ring's
+    cameras.
     """
     means = scene_or_means.means if isinstance(scene_or_means, GaussianScene) else scene_or_means
     if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
@@ -53,6 +56,8 @@ def orbit_cameras(
         raise ConfigError(f"orbit field of view {fov_deg} degrees must be in (0, 180)")
     if not -90.0 <= elevation_deg <= 90.0:
         raise ConfigError(f"orbit elevation {elevation_deg} degrees must be in [-90, 90]")
+    if not math.isfinite(azimuth_offset_deg):
+        raise ConfigError(f"orbit azimuth offset {azimuth_offset_deg} must be finite")
     if not (math.isfinite(radius_scale) and radius_scale > 0):
         raise ConfigError(f"orbit radius scale {radius_scale} must be positive")
     up_axis = np.asarray(up, dtype=np.float64)
@@ -81,7 +86,7 @@ def orbit_cameras(
     elevation = math.radians(elevation_deg)
     cameras = []
     for index in range(n):
-        azimuth = 2.0 * math.pi * index / n
+        azimuth = 2.0 * math.pi * index / n + math.radians(azimuth_offset_deg)
         horizontal = math.cos(azimuth) * front + math.sin(azimuth) * side
         view = math.cos(elevation) * horizontal - math.sin(elevation) * up_axis  # toward the centre
         eye = centre - distance * view

@@ -215,6 +215,38 @@ class _Views:
             ).rgb
         return rgb.permute(2, 0, 1)
 
+    def alpha(self, v: int, fit: _Fit) -> torch.Tensor:  # -> [H, W]
+        """The view's coverage (1 - final transmittance), with the current geometry offsets."""
+        if self.fast is not None:
+            return self.fast[v].alpha
+        return render(
+            self.means + fit.d_means,
+            self.quats + fit.d_quats,
+            self.log_scales + fit.d_log_scales,
+            self.logits,
+            torch.zeros_like(self.means),
+            self.cameras[v],
+            self.settings,
+        ).alpha
+
+
+def _proposal_backend(config: StylizeConfig):
+    """The configured proposal backend; the run's seed and content weight w_c go to every backend that has them."""
+    from .proposal import EnergyTerms, make_backend
+
+    if config.proposal == "synth":
+        weight = config.content_weight if config.use_content_query else 0.0
+        return make_backend("synth", seed=config.seed, content_weight=weight)
+    if config.proposal == "sd15":
+        backend = make_backend("sd15", model_path=config.model_path)
+    else:
+        backend = make_backend(config.proposal, seed=config.seed)  # the patch projections follow the run's seed
+    backend.learning_rate = config.latent_lr
+    backend.terms = EnergyTerms(
+        config.content_weight, config.use_content_query, config.use_style_keys, config.use_style_values
+    )
+    return backend
+
 
 def _feature_extractor(config: StylizeConfig, log: Callable[[str], None]):
     """The fit loss's feature term: DINO when local weights are given, else the weight-free patch features."""
@@ -268,6 +300,11 @@ def _run_id(
 
 def check_run_settings(config: StylizeConfig) -> None:
     """Raise ConfigError for settings that are valid on their own but cannot run (checked before any work)."""
+    if config.proposal == "synth" and not (config.use_style_keys and config.use_style_values):
+        raise ConfigError(
+            "the w/o K_s and w/o V_s ablations change the attention energy; the synth backend has none "
+            "(use --proposal sd15 for them)"
+        )
     if config.proposal == "sd15":
         if not config.model_path:
             raise ConfigError("the sd15 proposal backend needs a local model path (--model PATH)")
@@ -299,8 +336,9 @@ def stylize(
     ``views`` fixes the active cameras (indices into ``cameras``); otherwise they are chosen by coverage.
     Deterministic for ``config.seed`` on the CPU.
     """
-    from .color_transfer import covariance_color_transform
+    from .color_transfer import covariance_color_transform, coverage_weight
     from .losses import FitLossWeights, fit_loss
+    from .metrics import sliced_wasserstein_patches
     from .optim import (
         FitOptimizerSettings,
         GeometryBounds,
@@ -310,7 +348,6 @@ def stylize(
         scene_extent,
     )
     from .pcgrad import pcgrad_fuse
-    from .proposal import EnergyTerms, make_backend, optimize_proposal
     from .schedule import stage_gammas, stage_timesteps
     from .targets import proposal_residual, residual_target
 
@@ -416,11 +453,7 @@ def stylize(
         base_features = [features(r[None]).detach() for r in base_renders] if features else None
 
     # Proposal backend and its fixed references at the proposal resolution.
-    if config.proposal == "sd15":
-        backend = make_backend("sd15", model_path=config.model_path)
-    else:
-        backend = make_backend(config.proposal, seed=config.seed)  # the patch projections follow the run's seed
-    backend.learning_rate = config.latent_lr
+    backend = _proposal_backend(config)
     style_t = _resize(torch.from_numpy(style_rgb).permute(2, 0, 1).contiguous(), ph, pw)
     contents = []
     for i, v in enumerate(selection.indices):
@@ -429,7 +462,10 @@ def stylize(
             base_renders[i] if photo is None else torch.from_numpy(np.asarray(photo, dtype=np.float32)).permute(2, 0, 1)
         )
         contents.append(_resize(image, ph, pw))
-    terms = EnergyTerms(config.content_weight, config.use_content_query, config.use_style_keys, config.use_style_values)
+    # Coverage (alpha) of each base render: the synth backend and the post stage change only what splats cover.
+    with torch.no_grad():
+        alphas = [renderer.alpha(v, fit).detach() for v in range(len(active))]
+    coverages = [_resize(a[None].expand(3, -1, -1), ph, pw)[0] for a in alphas]
 
     # Resume from a checkpoint of the same run.
     checkpoint = Path(checkpoint_dir) / "checkpoint.pt" if checkpoint_dir else None
@@ -504,6 +540,16 @@ def stylize(
             images,
         )
 
+    def style_distance(renders) -> float:
+        """Style distance of the active views: 7x7 patch SW to the style at the proposal size, covered pixels."""
+        small = [_resize(r, ph, pw) for r in renders]
+        return float(sliced_wasserstein_patches(small, style_t, masks=coverages, seed=config.seed).mean())
+
+    previous_distance = log[-1]["style_distance"] if log and "style_distance" in log[-1] else None
+    if previous_distance is None:
+        previous_distance = style_distance(current_renders())
+        say(f"style distance of the base renders: {previous_distance:.4f}")
+
     for stage in stages[first_stage - 1 :]:
         n = stage.index
         stage_start = time.perf_counter()
@@ -514,8 +560,9 @@ def stylize(
             report(
                 n, i, len(active), "proposal", energies[-1] if energies else float("nan"), f"proposal for {names[i]}"
             )
-            states[i], values = optimize_proposal(backend, states[i], stage.timesteps, style_t, contents[i], terms)
+            states[i], values = backend.propose(states[i], stage.timesteps, style_t, contents[i], coverages[i])
             energies.append(values[-1])
+        proposal_seconds = time.perf_counter() - stage_start
         # Render-relative residual targets (Sec. 4.2, Eqs. 10-12).
         renders = current_renders()
         targets, images = [], {}
@@ -544,6 +591,7 @@ def stylize(
             "fit_loss_last": losses[-1] if losses else None,
             "fit_losses": losses,
             "stage_seconds": time.perf_counter() - stage_start,
+            "proposal_seconds": proposal_seconds,
             "seconds": time.perf_counter() - start_time,
             "peak_rss_mb": _peak_rss_mb(),
             "views": len(active),
@@ -555,6 +603,17 @@ def stylize(
             _save_stage_images(save_views_dir, n, images)
         # Feedback: re-encode the fitted render (Algorithm 1, last line).
         renders = current_renders()
+        distance = style_distance(renders)
+        improvement = (previous_distance - distance) / previous_distance if previous_distance > 0 else 0.0
+        entry.update(style_distance=distance, style_improvement=improvement)
+        stop = config.early_stop > 0 and n < n_stages and improvement < config.early_stop
+        if stop:
+            entry["early_stop"] = True
+            say(
+                f"stopping after stage {n} of {n_stages}: the style distance improved by {improvement:.1%} "
+                f"(< {config.early_stop:.1%}); the remaining stages are left out"
+            )
+        previous_distance = distance
         if config.feedback:
             states = [backend.encode(_resize(r, ph, pw)) for r in renders]
         if checkpoint is not None:
@@ -565,6 +624,8 @@ def stylize(
                 handle.write(json.dumps(entry) + "\n")
         if on_stage is not None:
             on_stage(stage_update(n, images))
+        if stop:
+            break
 
     # Post stage: covariance colour transfer of the renders toward the style, then fitting to it.
     if config.post_steps > 0:
@@ -572,8 +633,13 @@ def stylize(
         renders = current_renders()
         stack = torch.stack(renders)
         style_chw = torch.from_numpy(style_rgb).permute(2, 0, 1).contiguous()
-        transform = covariance_color_transform(stack, style_chw)
-        targets = [transform.apply_to_images(r).clamp(0, 1) for r in renders]
+        # Statistics over covered pixels only, and the background left as rendered: a black background
+        # in the statistics would wash the covered colours out, and recolouring it would light floaters.
+        transform = covariance_color_transform(stack, style_chw, render_mask=torch.stack(alphas))
+        targets = [
+            r + coverage_weight(a)[None] * (transform.apply_to_images(r).clamp(0, 1) - r)
+            for r, a in zip(renders, alphas)
+        ]
         losses = []
         post_start = time.perf_counter()
         for step in range(config.post_steps):

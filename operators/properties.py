@@ -7,7 +7,7 @@ into the fields, and :meth:`DRESG_PG_settings.config` turns the fields back into
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from ..dresg_addon.config import PRESETS, SCHEDULES, StylizeConfig, preset
+from ..dresg_addon.config import DEFAULT_PRESET, PRESETS, SCHEDULES, StylizeConfig, preset
 
 # Panel field -> StylizeConfig field, copied by a preset and read back by config().
 CONFIG_FIELDS = (
@@ -34,10 +34,11 @@ SCHEDULE_LABELS = {
 }
 
 
-DEFAULT_PRESET = "preview"
 PRESET_DESCRIPTIONS = {
     "paper": "The paper's settings: 20 stages, 30 fit steps, 448x320 proposals, full resolution",
-    "preview": "A quick look: 5 stages, at most 4 views, 224x160 proposals, half resolution",
+    "cpu": "The paper's 20 stages with colour-only fitting: slow on a CPU",
+    "standard": "Up to 6 stages (stops when the look settles), at most 8 views, 448x320 proposals",
+    "preview": "A quick look: up to 4 stages, at most 4 views, 224x160 proposals, half resolution",
 }
 
 
@@ -82,10 +83,11 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         name="Proposal",
         description="What proposes the stylized views at each stage",
         items=(
-            ("patch", "Patch (no download)", "Weight-free patch attention proposal; runs on the CPU"),
+            ("synth", "Painting Synthesis (no download)", "Pastes the painting's own strokes; runs on the CPU"),
+            ("patch", "Patch Attention (no download)", "The earlier weight-free proposal: tints and blurs"),
             ("sd15", "Stable Diffusion 1.5", "The paper's diffusion proposal (model path in the add-on preferences)"),
         ),
-        default="patch",
+        default="synth",
     )
     stages: IntProperty(name="Stages", min=1, soft_max=20, default=_default("stages"))
     fit_steps: IntProperty(

@@ -52,6 +52,10 @@ def load_addon(package: str = PACKAGE):
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
+    if str(REPO) not in sys.path:
+        sys.path.insert(0, str(REPO))
+    from dresg_addon.config import DEFAULT_PRESET, PRESETS, PROPOSALS
+
     parser = argparse.ArgumentParser(
         prog="stylize_headless.py", description="Stylize a Gaussian splat scene after a style image (DReSG)."
     )
@@ -59,8 +63,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--style", required=True, help="style image")
     parser.add_argument("--out", required=True, help="output graphdeco .ply")
     parser.add_argument("--blend", help="a .blend whose cameras to use (python form; Blender takes it before -P)")
-    parser.add_argument("--preset", default="preview", help="settings preset (paper, preview)")
-    parser.add_argument("--proposal", choices=("patch", "sd15"), default="patch")
+    parser.add_argument("--preset", default=DEFAULT_PRESET, help=f"settings preset ({', '.join(PRESETS)})")
+    parser.add_argument("--proposal", choices=PROPOSALS, default="synth")
     parser.add_argument("--model-path", default="", help="SD1.5 diffusers folder or .safetensors (sd15)")
     parser.add_argument("--dino-path", default="", help="local DINOv2 weights for the feature loss")
     parser.add_argument("--axes", choices=("opencv", "none"), default="opencv", help="frame of the input file")

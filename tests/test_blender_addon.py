@@ -102,7 +102,7 @@ def test_register_unregister_twice(addon):
         assert module.ui.menus.draw_import not in getattr(bpy.types.TOPBAR_MT_file_import.draw, "_draw_funcs", [])
         module.register()
         assert hasattr(bpy.types, "DRESG_OT_stylize") and hasattr(bpy.types, "DRESG_PT_main")
-        assert bpy.context.scene.dresg.preset == "preview"
+        assert bpy.context.scene.dresg.preset == "standard"
         assert module.ui.menus.draw_import in bpy.types.TOPBAR_MT_file_import.draw._draw_funcs
 
 

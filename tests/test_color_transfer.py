@@ -5,7 +5,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dresg_addon.color_transfer import color_moments, color_transfer, covariance_color_transform, symmetric_sqrt
+from dresg_addon.color_transfer import (
+    color_moments,
+    color_transfer,
+    covariance_color_transform,
+    coverage_weight,
+    match_color_histograms,
+    symmetric_sqrt,
+)
 from dresg_addon.errors import CameraError, ImageError, NumericalError
 
 
@@ -122,3 +129,75 @@ def test_bad_inputs():
     bad[0, 0, 0] = float("nan")
     with pytest.raises(NumericalError):
         covariance_color_transform(renders, bad)
+
+
+def _style_axes(style_pixels):
+    mu_s, cov_s = color_moments(style_pixels)
+    return mu_s, torch.linalg.eigh(cov_s).eigenvectors
+
+
+def test_match_color_histograms_takes_the_style_marginals_along_its_axes():
+    pixels = _correlated_images(1, 20, 25, RENDER_MIX, [0.4, 0.5, 0.3], seed=8)[0].reshape(3, -1).T
+    style = _correlated_images(1, 25, 20, STYLE_MIX, [0.6, 0.3, 0.5], seed=9)[0].reshape(3, -1).T
+    out = match_color_histograms(pixels, style)
+    assert out.shape == pixels.shape and out.dtype == pixels.dtype
+    mu_s, axes = _style_axes(style)
+    projected, target = (out - mu_s) @ axes, (style - mu_s) @ axes
+    # Equal counts: along each axis the sorted values are exactly the style's.
+    torch.testing.assert_close(projected.sort(0).values, target.sort(0).values, atol=1e-12, rtol=0)
+    # The order of the pixels along each axis is kept (a monotone map per axis).
+    assert torch.equal(projected.argsort(0), ((pixels - mu_s) @ axes).argsort(0))
+    torch.testing.assert_close(out.mean(0), style.mean(0), atol=1e-12, rtol=0)
+
+
+def test_match_color_histograms_with_unequal_counts():
+    pixels = _correlated_images(1, 10, 30, RENDER_MIX, [0.4, 0.5, 0.3], seed=10)[0].reshape(3, -1).T
+    style = _correlated_images(1, 35, 20, STYLE_MIX, [0.6, 0.3, 0.5], seed=11)[0].reshape(3, -1).T
+    out = match_color_histograms(pixels.float(), style)
+    assert out.dtype == torch.float32 and bool(torch.isfinite(out).all())
+    mu_s, axes = _style_axes(style)
+    projected, target = (out.double() - mu_s) @ axes, (style - mu_s) @ axes
+    assert bool((projected >= target.min(0).values - 1e-5).all()) and bool(
+        (projected <= target.max(0).values + 1e-5).all()
+    )
+    torch.testing.assert_close(out.double().mean(0), style.mean(0), atol=0.01, rtol=0)
+
+
+def test_match_color_histograms_flat_empty_and_bad_inputs():
+    style = _correlated_images(1, 12, 12, STYLE_MIX, [0.6, 0.3, 0.5], seed=12)[0].reshape(3, -1).T
+    flat = torch.full((50, 3), 0.4, dtype=torch.float64)
+    out = match_color_histograms(flat, style)
+    assert out.shape == (50, 3) and bool(torch.isfinite(out).all())
+    flat_style = torch.tensor([[0.2, 0.7, 0.1]], dtype=torch.float64).expand(30, 3)
+    out = match_color_histograms(style, flat_style)
+    torch.testing.assert_close(out, flat_style[:1].expand_as(out), atol=1e-12, rtol=0)
+    empty = match_color_histograms(torch.zeros(0, 3), style)
+    assert empty.shape == (0, 3)
+    for bad_pixels, bad_style in (
+        (torch.rand(5, 4), style),
+        (torch.rand(5), style),
+        (torch.rand(2, 5, 3), style),
+        (torch.rand(5, 3), torch.rand(5, 2)),
+        (torch.rand(5, 3), torch.rand(3, 4, 4)),
+    ):
+        with pytest.raises(ValueError):
+            match_color_histograms(bad_pixels, bad_style)
+    with pytest.raises(ImageError):
+        match_color_histograms(torch.rand(5, 3), torch.zeros(0, 3))
+
+
+def test_coverage_weight_is_a_smoothstep():
+    alpha = torch.linspace(-0.5, 1.5, 2001, dtype=torch.float64)
+    weight = coverage_weight(alpha)
+    assert bool((weight[alpha <= 0.25] == 0).all()) and bool((weight[alpha >= 0.75] == 1).all())
+    assert bool((weight.diff() >= 0).all())
+    step = float(alpha[1] - alpha[0])
+    assert float(weight.diff().max()) <= 3.0 * step * (1 + 1e-9)  # slope at most 1.5 / 0.5: no jump
+    torch.testing.assert_close(
+        coverage_weight(torch.tensor(0.5, dtype=torch.float64)), torch.tensor(0.5, dtype=torch.float64)
+    )
+    # Flat at both ends (continuous derivative): a small step in alpha gives a quadratically small change.
+    near = coverage_weight(torch.tensor([0.25 + 1e-3, 0.75 - 1e-3], dtype=torch.float64))
+    assert float(near[0]) < 1e-4 and float(1 - near[1]) < 1e-4
+    image = torch.rand(2, 5, 7)
+    assert coverage_weight(image).shape == image.shape

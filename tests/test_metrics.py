@@ -168,6 +168,161 @@ def test_sobel_ramp_has_its_slope():
 
 
 # ----------------------------------------------------------------------------------------------------
+# Coverage masks (objects on a black background)
+
+
+def blob_mask(h=32, w=40) -> torch.Tensor:  # [H, W] bool: an off-centre ellipse, like an object's silhouette
+    y, x = torch.meshgrid(torch.arange(h, dtype=F64) + 0.5, torch.arange(w, dtype=F64) + 0.5, indexing="ij")
+    return ((y - 0.45 * h) / (0.4 * h)) ** 2 + ((x - 0.55 * w) / (0.4 * w)) ** 2 <= 1.0
+
+
+def test_sw_colors_masked_is_the_sw_of_the_covered_pixels():
+    style = smooth_image(32, 40)
+    on_black = torch.cat([style, torch.zeros(3, 32, 24)], -1)  # the style itself, then black background
+    covered = (torch.arange(64) < 40).expand(32, 64)
+    assert float(metrics.sliced_wasserstein_colors(on_black, style, masks=covered)[0]) == 0.0
+    assert float(metrics.sliced_wasserstein_colors(on_black, style)[0]) > 0.1
+    # An irregular mask: the same value as an image made of the covered pixels alone, subsampled or not.
+    image, mask = smooth_image(32, 40, seed=2), blob_mask()
+    alone = image[:, mask][:, None, :]  # [3, 1, n]
+    assert alone.shape[-1] > 300
+    for max_samples in (None, 65536, 300):
+        masked = metrics.sliced_wasserstein_colors(image, style, max_samples=max_samples, masks=mask)
+        assert torch.equal(masked, metrics.sliced_wasserstein_colors(alone, style, max_samples=max_samples))
+    # An all-true mask keeps every pixel: exactly the unmasked value (subset included).
+    full = torch.ones(32, 40, dtype=torch.bool)
+    for max_samples in (None, 300):
+        assert torch.equal(
+            metrics.sliced_wasserstein_colors(image, style, max_samples=max_samples, masks=full),
+            metrics.sliced_wasserstein_colors(image, style, max_samples=max_samples),
+        )
+
+
+def test_sw_patches_masked_ignores_windows_touching_the_background():
+    style = smooth_image(32, 40, dtype=F64)
+    noise = torch.rand(3, 32, 24, generator=torch.Generator().manual_seed(5), dtype=F64)
+    image = torch.cat([style, noise], -1)
+    covered = (torch.arange(64) < 40).expand(32, 64)
+    # The fully covered windows are exactly the style's windows; every window reaching the noise is left out.
+    assert float(metrics.sliced_wasserstein_patches(image, style, masks=covered)[0]) == 0.0
+    assert float(metrics.sliced_wasserstein_patches(image, style)[0]) > 0.05
+    # Irregular mask: the same as SW_2 of the windows lying wholly inside it, enumerated by hand.
+    image, mask = smooth_image(32, 40, seed=2, dtype=F64), blob_mask()
+    windows = [
+        image[:, top : top + 7, left : left + 7].reshape(-1)
+        for top in range(26)
+        for left in range(34)
+        if bool(mask[top : top + 7, left : left + 7].all())
+    ]
+    style_windows = [style[:, t : t + 7, l : l + 7].reshape(-1) for t in range(26) for l in range(34)]
+    assert 50 < len(windows) < 26 * 34
+    expected = metrics.sliced_wasserstein(torch.stack(windows), torch.stack(style_windows))
+    masked = metrics.sliced_wasserstein_patches(image, style, masks=mask)
+    assert float(masked[0]) == pytest.approx(float(expected), rel=1e-12)
+    # The background does not matter, up to the pixels next to the silhouette.
+    repainted = torch.where(mask, image, torch.rand(3, 32, 40, dtype=F64))
+    assert torch.equal(masked, metrics.sliced_wasserstein_patches(repainted, style, masks=mask))
+    # Subsampling among the kept windows is deterministic.
+    a = metrics.sliced_wasserstein_patches(image, style, max_samples=40, masks=mask)
+    assert torch.equal(a, metrics.sliced_wasserstein_patches(image, style, max_samples=40, masks=mask))
+
+
+def test_masks_that_cover_nothing_fall_back_to_all_pixels():
+    style, image = smooth_image(seed=0), smooth_image(seed=1)
+    empty = torch.zeros(32, 40, dtype=torch.bool)
+    for fn in (metrics.sliced_wasserstein_colors, metrics.sliced_wasserstein_patches):
+        value = fn(image, style, masks=empty)
+        assert torch.isfinite(value).all()
+        assert torch.equal(value, fn(image, style))
+    # A mask thinner than the patch has no fully covered window: all windows, per image.
+    line = torch.zeros(32, 40, dtype=torch.bool)
+    line[10] = True
+    both = metrics.sliced_wasserstein_patches(
+        torch.stack([image, image]), style, masks=torch.stack([line, blob_mask()])
+    )
+    assert float(both[0]) == float(metrics.sliced_wasserstein_patches(image, style)[0])
+    assert float(both[1]) != float(both[0])
+    a, b = smooth_image(dtype=F64), smooth_image(seed=3, dtype=F64)
+    for fn in (metrics.ssim_per_image, metrics.gradient_structure_similarity):
+        value = fn(a, b, mask=empty)
+        assert math.isfinite(float(value))
+        assert float(value) == pytest.approx(float(fn(a, b)), abs=1e-12)
+
+
+def test_float_alpha_masks_threshold_at_half():
+    style, image = smooth_image(seed=0), smooth_image(seed=1)
+    mask = blob_mask()
+    alpha = torch.where(mask, 0.51, 0.49) + 0.4 * torch.where(mask, 1.0, -1.0) * torch.rand(32, 40)  # clear of 0.5
+    assert torch.equal(alpha > metrics.ALPHA_THRESHOLD, mask)
+    for fn in (metrics.sliced_wasserstein_colors, metrics.sliced_wasserstein_patches):
+        assert torch.equal(fn(image, style, masks=alpha), fn(image, style, masks=mask))
+    for fn in (metrics.ssim_per_image, metrics.gradient_structure_similarity):
+        assert torch.equal(fn(image, style, mask=alpha), fn(image, style, mask=mask))
+    # Exactly the threshold is not covered (as in warp_to).
+    half = torch.where(mask, 1.0, 0.5)
+    assert torch.equal(
+        metrics.sliced_wasserstein_colors(image, style, masks=half),
+        metrics.sliced_wasserstein_colors(image, style, masks=mask),
+    )
+
+
+def test_ssim_masked_ignores_the_background():
+    a, mask = smooth_image(dtype=F64), blob_mask()
+    noise = torch.rand(3, 32, 40, generator=torch.Generator().manual_seed(1), dtype=F64)
+    b = torch.where(mask, a, noise)  # identical where covered, different background
+    assert float(metrics.ssim_per_image(a, b, mask=mask)) == pytest.approx(1.0, abs=1e-6)
+    assert float(metrics.ssim_per_image(a, b)) < 0.9
+    # A change on the object only: the background no longer dilutes it.
+    changed = torch.where(mask, (a + 0.2 * noise).clamp(0, 1), a)
+    masked = float(metrics.ssim_per_image(a, changed, mask=mask))
+    assert masked < float(metrics.ssim_per_image(a, changed)) and masked < 0.95
+
+
+def test_gradient_structure_masked_ignores_the_background():
+    a, mask = smooth_image(dtype=F64), blob_mask()
+    other = smooth_image(seed=7, dtype=F64)
+    b = torch.where(mask, a, other)
+    assert float(metrics.gradient_structure_similarity(a, b, mask=mask)) == pytest.approx(1.0, abs=1e-9)
+    assert float(metrics.gradient_structure_similarity(a, b)) < 0.9
+    # Other content on the object, the same background: lower (the shared silhouette keeps it well above 0).
+    assert float(metrics.gradient_structure_similarity(a, torch.where(mask, other, a), mask=mask)) < 0.85
+
+
+def test_masks_list_and_batch_agree():
+    style = smooth_image(seed=0)
+    images = torch.stack([smooth_image(seed=s) for s in (1, 2, 3)])
+    masks = torch.stack([blob_mask(), blob_mask().flip(0), torch.ones(32, 40, dtype=torch.bool)])
+    for fn in (metrics.sliced_wasserstein_colors, metrics.sliced_wasserstein_patches):
+        batched = fn(images, style, masks=masks)
+        assert torch.equal(batched, fn(list(images), style, masks=list(masks)))
+        assert torch.equal(batched, torch.cat([fn(i, style, masks=m) for i, m in zip(images, masks)]))
+        # None in a list: that image unmasked.
+        assert torch.equal(fn(images, style, masks=[masks[0], None, masks[2]])[1], fn(images[1], style)[0])
+    others = torch.stack([smooth_image(seed=s) for s in (4, 5, 6)])
+    for fn in (metrics.ssim_per_image, metrics.gradient_structure_similarity):
+        batched = fn(images, others, mask=masks)
+        single = torch.stack([fn(i, o, mask=m) for i, o, m in zip(images, others, masks)])
+        assert torch.allclose(batched, single, atol=1e-6)
+        assert torch.equal(fn(images, others, mask=masks[0]), fn(images, others, mask=masks[0].expand(3, 32, 40)))
+
+
+def test_masks_bad_shapes_raise():
+    style, images = smooth_image(seed=0), torch.stack([smooth_image(seed=1)] * 2)
+    for fn in (metrics.sliced_wasserstein_colors, metrics.sliced_wasserstein_patches):
+        with pytest.raises(ValueError, match=r"got shape \(32, 41\)"):
+            fn(images, style, masks=torch.ones(2, 32, 41, dtype=torch.bool))
+        with pytest.raises(ValueError, match=r"got shape \(2, 1, 32, 40\)"):
+            fn(images, style, masks=torch.ones(2, 1, 32, 40, dtype=torch.bool))
+        with pytest.raises(ValueError, match="got 3 masks for 2 images"):
+            fn(images, style, masks=[torch.ones(32, 40, dtype=torch.bool)] * 3)
+    for fn in (metrics.ssim_per_image, metrics.gradient_structure_similarity):
+        with pytest.raises(ValueError, match=r"got shape \(3, 32, 40\)"):
+            fn(images, images, mask=torch.ones(3, 32, 40, dtype=torch.bool))
+        with pytest.raises(ValueError, match=r"got shape \(40, 32\)"):
+            fn(images[0], images[0], mask=torch.ones(40, 32, dtype=torch.bool))
+
+
+# ----------------------------------------------------------------------------------------------------
 # Consistency: the warp
 
 

@@ -8,7 +8,7 @@ import time
 from dataclasses import fields
 from pathlib import Path
 
-from ..config import PRESETS, PROPOSALS, SCHEDULES, SH_REST_MODES, preset
+from ..config import DEFAULT_PRESET, PRESETS, PROPOSALS, SCHEDULES, SH_REST_MODES, preset
 from ..errors import ConfigError
 from ._common import add_scene_and_cameras, load_scene_and_cameras, parse_background
 
@@ -48,10 +48,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--preset",
         choices=sorted(PRESETS),
-        default="cpu",
-        help="paper: exact defaults; cpu: the paper's schedule, colour-only fitting; preview: quick look",
+        default=DEFAULT_PRESET,
+        help="standard (default): the quality plateau on a CPU; preview: quick look; paper: exact defaults; "
+        "cpu: the paper's schedule, colour-only fitting",
     )
-    parser.add_argument("--proposal", choices=PROPOSALS, help="proposal backend: patch (no weights) or sd15")
+    parser.add_argument(
+        "--proposal",
+        choices=PROPOSALS,
+        help="proposal backend: synth (default, no weights), patch (no weights) or sd15",
+    )
     parser.add_argument("--model", metavar="PATH", help="local Stable Diffusion 1.5 folder or .safetensors (sd15)")
     parser.add_argument("--dino", metavar="PATH", help="local DINO weights for the fit loss's feature term")
     parser.add_argument("--schedule", choices=SCHEDULES, help="residual-strength schedule")

@@ -6,7 +6,7 @@ imported only when chosen.
 
 from __future__ import annotations
 
-from .base import AttentionFeatures, EnergyTerms, ProposalBackend, attention_energy, optimize_proposal
+from .base import AttentionBackend, AttentionFeatures, EnergyTerms, ProposalBackend, attention_energy, optimize_proposal
 
 
 def make_backend(name: str, **kwargs) -> ProposalBackend:
@@ -17,6 +17,10 @@ def make_backend(name: str, **kwargs) -> ProposalBackend:
         from .patch import PatchBackend
 
         return PatchBackend(**kwargs)
+    if name == "synth":
+        from .synth import SynthBackend
+
+        return SynthBackend(**kwargs)
     if name == "sd15":
         from .sd15 import SD15Backend
 
@@ -25,6 +29,7 @@ def make_backend(name: str, **kwargs) -> ProposalBackend:
 
 
 __all__ = [
+    "AttentionBackend",
     "AttentionFeatures",
     "EnergyTerms",
     "ProposalBackend",

@@ -1,10 +1,15 @@
-"""The proposal interface and the attention guidance energy shared by every backend (Sec. 4.1).
+"""The proposal interface (Sec. 4.1, Algorithm 1 lines 3-5) and the attention guidance energy.
 
-A backend maps an image to a state (a VAE latent for SD1.5, a smoothed opponent-colour logit image for
-the patch backend), gives self-attention Q/K/V features of a state at a scheduler timestep, and
-decodes a state to an image.
-The energy (Eqs. 6-9), a backend's optional extra term (``extra_energy``) and the optimisation loop
-(one fresh Adam step per timestep) live here, once.
+Every backend maps an image to a state (``encode``), decodes a state to an image (``decode``) and
+``propose``s: it updates a view's state once per scheduler timestep of a stage, given the style image,
+the view's content image and the render's coverage (alpha). Two kinds implement it:
+
+- :class:`AttentionBackend` (``sd15``, ``patch``): a latent with self-attention Q/K/V features at a
+  timestep; ``propose`` is one fresh-Adam step of the attention energy (Eqs. 6-9) per timestep
+  (:func:`optimize_proposal`). The energy, a backend's optional extra term (``extra_energy``) and the
+  loop live here, once.
+- ``synth`` (``proposal/synth.py``): the state is the image, and an update is one pass of example-based
+  synthesis at the scale the timestep sets.
 """
 
 from __future__ import annotations
@@ -65,10 +70,9 @@ def attention_energy(
 
 
 class ProposalBackend(ABC):
-    """Encode / features / decode; the energy and the update loop are shared (``optimize_proposal``)."""
+    """Encode / decode / propose: what the pipeline needs of any proposal backend."""
 
     name: str = "base"
-    learning_rate: float = 0.05  # latent Adam lr of the paper
 
     @abstractmethod
     def encode(self, image: torch.Tensor) -> torch.Tensor:
@@ -77,6 +81,31 @@ class ProposalBackend(ABC):
     @abstractmethod
     def decode(self, state: torch.Tensor) -> torch.Tensor:
         """State -> [3, H, W] image in [0, 1]."""
+
+    @abstractmethod
+    def propose(
+        self,
+        state: torch.Tensor,
+        timesteps: Sequence[int],
+        style_image: torch.Tensor,  # [3, H, W] at the proposal resolution
+        content_image: torch.Tensor | None,  # [3, H, W]
+        coverage: torch.Tensor | None = None,  # [H, W] the render's alpha
+    ) -> tuple[torch.Tensor, list[float]]:
+        """Algorithm 1, lines 3-5: one update of ``state`` per timestep; returns the new state and an energy per update."""
+
+
+class AttentionBackend(ProposalBackend):
+    """A latent with self-attention features; ``propose`` descends the attention energy (``optimize_proposal``).
+
+    ``terms`` (the content weight and the ablation switches) and ``learning_rate`` are set by the caller.
+    The coverage map is not used: the paper's proposals cover the whole image.
+    """
+
+    learning_rate: float = 0.05  # latent Adam lr of the paper
+    terms: EnergyTerms = EnergyTerms()
+
+    def propose(self, state, timesteps, style_image, content_image, coverage=None):
+        return optimize_proposal(self, state, timesteps, style_image, content_image, self.terms)
 
     @abstractmethod
     def features(self, state: torch.Tensor, timestep: int) -> AttentionFeatures:
@@ -96,7 +125,7 @@ class ProposalBackend(ABC):
 
 
 def optimize_proposal(
-    backend: ProposalBackend,
+    backend: AttentionBackend,
     state: torch.Tensor,
     timesteps: Sequence[int],
     style_image: torch.Tensor,

@@ -45,7 +45,7 @@ import torch.nn.functional as F
 
 from ..errors import ConfigError
 from ..schedule import alphas_cumprod
-from .base import AttentionFeatures, ProposalBackend
+from .base import AttentionBackend, AttentionFeatures
 
 LOGIT_EPS = 1e-4  # clamp inside the logit, as in the paper's target construction
 TOKEN_PATCH = 4  # side of a token's descriptor patch, in pooled pixels
@@ -218,7 +218,7 @@ def _orthonormal(generator: torch.Generator, rows: int, cols: int) -> torch.Tens
     return basis[:rows, :cols].float().contiguous()
 
 
-class PatchBackend(ProposalBackend):
+class PatchBackend(AttentionBackend):
     """Attention guidance over fixed patch features plus a patch sliced-Wasserstein energy; no weights.
 
     ``PatchBackend(seed=1, heads=4)`` overrides fields of ``PatchSettings``; unknown names raise.

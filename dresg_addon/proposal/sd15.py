@@ -28,7 +28,7 @@ import torch
 
 from ..errors import ConfigError, ModelError, NumericalError, with_path
 from ..schedule import SD15_TRAIN_TIMESTEPS
-from .base import AttentionFeatures, ProposalBackend
+from .base import AttentionBackend, AttentionFeatures
 from .sd15_configs import EMPTY_PROMPT_IDS, SD15Configs
 
 LATENT_SCALE = 0.18215  # SD1.x VAE latent scaling
@@ -438,7 +438,7 @@ def _lru_put(cache: OrderedDict, key, value, capacity: int) -> None:
         cache.popitem(last=False)
 
 
-class SD15Backend(ProposalBackend):
+class SD15Backend(AttentionBackend):
     """Frozen SD1.5: VAE latents as the state, U-Net self-attention Q/K/V/O as the features.
 
     ``layers`` are zero-based self-attention indices in execution order (default 10-15). Reference

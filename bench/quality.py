@@ -1,0 +1,380 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Quality benchmark: does the stylized scene look like the painting, from views it was not fitted on?
+
+    .venv/bin/python bench/quality.py [--quick] [--scenes bonsai,luigi,demo] [--styles starry_night,...]
+        [--rows unstylized,colour-transfer,preview,standard] [--markdown out.md] [--json out.json]
+        [--figures DIR] [--threads N]
+
+Not a test: it prints a table. Scenes: the real bonsai (273k splats) and luigi (14.5k, y-up) from
+``../shared/data/scenes`` and the generated demo scene; styles: every painting in
+``../shared/data/styles``. Scenes and styles that are absent are skipped (the demo scene and its
+painting always run).
+
+Cameras. Each scene is stylized from 16 orbit cameras at 448x320 (the candidates of view selection) and
+evaluated from 16 other orbit cameras on the same ring, half a step between them: novel views that were
+never active, so a per-view proposal the scene could not absorb shows here.
+
+Rows.
+- ``unstylized``: the scene as it is.
+- ``colour-transfer``: the paper's post stage alone: one covariance (affine) colour map from the base
+  renders of the 16 cameras (covered pixels) to the style, applied to every splat's colour.
+- ``patch``: the old weight-free backend at ``preview`` (while it exists).
+- ``preview`` and ``standard``: the stylizer's presets (the ``synth`` backend).
+
+Columns, from ``dresg_addon.metrics``, means over the evaluation views, on the pixels the scene covers
+(alpha > 0.5): sliced-Wasserstein distance of 7x7 patches and of colours to the style image (lower is
+closer to the painting); SSIM and gradient structure to the unstylized render of the same camera
+(higher keeps more of the scene); short- (neighbouring evaluation views) and long-range (opposite
+views) depth-warp RMSE (lower is more consistent; the unstylized row is the scene's own floor); wall
+time of the stylization; peak resident memory of its process. Each case runs in a fresh process.
+
+Targets, as means over scene x style pairs: patch SW at least 15% below ``colour-transfer``; SSIM to the
+base >= 0.5; short-range RMSE at most 1.2x ``colour-transfer``'s; ``preview`` <= 60 s and ``standard``
+<= 5 min on the bonsai.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import harness  # first: it puts the repository on sys.path
+
+from dresg_addon.machine import load_average
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("DRESG_SHARED_DATA", REPO.parent / "shared" / "data"))
+SCENES = {
+    "bonsai": (SHARED / "scenes" / "bonsai-7k-mini.splat", (0.0, -1.0, 0.0)),
+    "luigi": (SHARED / "scenes" / "luigi.ply", (0.0, 1.0, 0.0)),
+    "demo": (None, (0.0, -1.0, 0.0)),
+}
+ROWS = ("unstylized", "colour-transfer", "patch", "preview", "standard")
+FULL = {"views": 16, "width": 448, "height": 320}
+QUICK = {"views": 4, "width": 112, "height": 80}
+QUICK_OVERRIDES = {
+    "stages": 2,
+    "updates_per_stage": 2,
+    "fit_steps": 3,
+    "post_steps": 3,
+    "proposal_width": 96,
+    "proposal_height": 64,
+}
+TARGET_PATCH_GAIN = 0.15
+TARGET_SSIM = 0.5
+TARGET_SHORT_RATIO = 1.2
+TARGET_SECONDS = {"preview": 60.0, "standard": 300.0}
+COLUMNS = (
+    ("sw_patches", "SW patch ↓", 4),
+    ("sw_colors", "SW colour ↓", 4),
+    ("ssim", "SSIM ↑", 3),
+    ("structure", "GS ↑", 3),
+    ("short_rmse", "short RMSE ↓", 4),
+    ("long_rmse", "long RMSE ↓", 4),
+)
+
+
+# --- worker side (one subprocess per case) ---------------------------------------------------------------
+
+
+def style_path(name: str) -> Path | None:
+    path = SHARED / "styles" / f"{name}.jpg"
+    return path if path.is_file() else None
+
+
+def load_case(spec: dict):
+    """(scene, training cameras, evaluation cameras, style [H, W, 3]) of a case."""
+    from dresg_addon.demo import demo_scene, demo_style_image
+    from dresg_addon.imageio import read_rgb
+    from dresg_addon.io import read_scene
+    from dresg_addon.orbit import orbit_cameras
+
+    path, up = SCENES[spec["scene"]]
+    scene = demo_scene() if path is None else read_scene(path)
+    if spec.get("subsample", 1) > 1:
+        scene = scene.subset(slice(None, None, spec["subsample"]))
+    size = {"width": spec["width"], "height": spec["height"], "up": up}
+    train = orbit_cameras(scene, spec["views"], **size)
+    novel = orbit_cameras(scene, spec["views"], azimuth_offset_deg=180.0 / spec["views"], **size)
+    style = demo_style_image() if spec["style"] == "demo" else read_rgb(style_path(spec["style"]))
+    return scene, train, novel, style
+
+
+def colour_transfer_scene(scene, cameras, style):
+    """The post stage alone: one covariance colour map, fitted on the covered pixels of the base renders."""
+    from dataclasses import replace
+
+    import numpy as np
+    import torch
+
+    from dresg_addon.color_transfer import covariance_color_transform
+    from dresg_addon.raster import render_scene
+    from dresg_addon.raster.sh import SH_C0
+
+    renders = [render_scene(scene, camera) for camera in cameras]
+    stack = torch.stack([r.rgb.permute(2, 0, 1) for r in renders])
+    alphas = torch.stack([r.alpha for r in renders])
+    style_chw = torch.from_numpy(style).permute(2, 0, 1).contiguous()
+    transform = covariance_color_transform(stack, style_chw, render_mask=alphas)
+    colours = torch.from_numpy(np.maximum(0.5 + SH_C0 * scene.sh_dc, 0.0)).double()
+    mapped = transform.apply_to_colors(colours).clamp(0.0, 1.0).numpy()
+    out = replace(scene, sh_dc=((mapped - 0.5) / SH_C0).astype(np.float32))
+    return out if scene.sh_rest is None else replace(out, sh_rest=np.zeros_like(scene.sh_rest))
+
+
+def evaluate(base, stylized, cameras, style) -> tuple[dict, list]:
+    """The columns over ``cameras`` (covered pixels), and the (base, stylized) renders of every camera."""
+    import torch
+
+    from dresg_addon import metrics
+    from dresg_addon.imageio import resize_image
+    from dresg_addon.raster import render_scene
+
+    ours = [render_scene(stylized, camera) for camera in cameras]
+    theirs = [render_scene(base, camera) for camera in cameras]
+    rgb = [o.rgb.permute(2, 0, 1) for o in ours]
+    base_rgb = [t.rgb.permute(2, 0, 1) for t in theirs]
+    masks = [t.alpha for t in theirs]
+    style_t = torch.from_numpy(style).permute(2, 0, 1).contiguous()
+    camera = cameras[0]
+    h, w = style_t.shape[1:]
+    factor = min(camera.width, camera.height) / min(w, h)
+    style_t = resize_image(style_t, max(1, round(w * factor)), max(1, round(h * factor)))
+    result = {
+        "sw_patches": float(metrics.sliced_wasserstein_patches(rgb, style_t, masks=masks).mean()),
+        "sw_colors": float(metrics.sliced_wasserstein_colors(rgb, style_t, masks=masks).mean()),
+        "ssim": float(
+            torch.stack([metrics.ssim_per_image(a, b, mask=m) for a, b, m in zip(rgb, base_rgb, masks)]).mean()
+        ),
+        "structure": float(
+            torch.stack(
+                [metrics.gradient_structure_similarity(a, b, mask=m) for a, b, m in zip(rgb, base_rgb, masks)]
+            ).mean()
+        ),
+    }
+    images = [o.rgb for o in ours]
+    depths, alphas = [o.depth for o in ours], [o.alpha for o in ours]
+    n = len(cameras)
+    for key, gap in (("short_rmse", 1), ("long_rmse", max(1, n // 2))):
+        result[key] = metrics.consistency_rmse(images, depths, alphas, cameras, gap).rmse
+    return result, [(t.rgb, o.rgb) for t, o in zip(theirs, ours)]
+
+
+def run_case(spec: dict) -> dict:
+    """Stylize one (scene, style) with one row's method, then evaluate it on the novel views."""
+    import numpy as np
+
+    from dresg_addon.config import preset
+    from dresg_addon.imageio import write_image
+    from dresg_addon.pipeline import stylize
+
+    scene, train, novel, style = load_case(spec)
+    started = time.perf_counter()
+    row = spec["row"]
+    log = []
+    if row == "unstylized":
+        out = scene
+    elif row == "colour-transfer":
+        out = colour_transfer_scene(scene, train, style)
+    else:
+        name, overrides = ("preview", {"proposal": "patch"}) if row == "patch" else (row, {})
+        config = preset(name, **overrides, **spec.get("overrides", {}))
+        result = stylize(scene, train, style, config)
+        out, log = result.scene, result.log
+    seconds = time.perf_counter() - started
+    peak = harness.peak_rss_bytes()
+    measured, views = evaluate(scene, out, novel, style)
+    if spec.get("figures"):
+        folder = Path(spec["figures"])
+        for i, (before, after) in enumerate(views):
+            if i in spec.get("figure_views", (0,)):
+                write_image(folder / f"{spec['scene']}_{spec['style']}_{row}_v{i:02d}.png", np.ascontiguousarray(after))
+                if row == "unstylized":
+                    write_image(folder / f"{spec['scene']}_v{i:02d}.png", np.ascontiguousarray(before))
+    stages = [e for e in log if e.get("stage") != "post"]
+    return {
+        **measured,
+        "seconds": seconds,
+        "peak_rss": peak,
+        "gaussians": len(scene),
+        "stages": len(stages),
+        "views": stages[0]["views"] if stages else 0,
+    }
+
+
+def run_baseline(spec: dict) -> dict:
+    import torch
+
+    import dresg_addon.pipeline  # noqa: F401
+
+    return {"torch": torch.__version__, "threads": torch.get_num_threads(), "peak_rss": harness.peak_rss_bytes()}
+
+
+WORKERS = {"case": run_case, "baseline": run_baseline}
+
+
+# --- driver side -----------------------------------------------------------------------------------------
+
+
+def fmt(value, digits: int) -> str:
+    return "n/a" if value is None else f"{value:.{digits}f}"
+
+
+def mean(values) -> float | None:
+    present = [v for v in values if v is not None]
+    return sum(present) / len(present) if present else None
+
+
+def table(rows: list[tuple[str, dict]]) -> list[str]:
+    head = "| row | " + " | ".join(label for _, label, _ in COLUMNS) + " | time | peak memory |"
+    out = [head, "|---|" + "---:|" * (len(COLUMNS) + 2)]
+    for name, r in rows:
+        if "error" in r:
+            out.append(f"| {name} | {r['error']} |" + " |" * (len(COLUMNS) + 1))
+            continue
+        cells = [fmt(r.get(key), digits) for key, _, digits in COLUMNS]
+        out.append(f"| {name} | " + " | ".join(cells) + f" | {r['seconds']:.1f} s | {r['peak_rss'] / 1e9:.2f} GB |")
+    return out
+
+
+def available_rows(requested: list[str]) -> list[str]:
+    import importlib.util
+
+    rows = []
+    for row in requested:
+        if row == "patch" and importlib.util.find_spec("dresg_addon.proposal.patch") is None:
+            continue  # the old backend is gone
+        rows.append(row)
+    return rows
+
+
+def verdicts(results: dict, rows: list[str], quick: bool) -> list[str]:
+    """The issue's targets, on the means over every (scene, style) pair that ran all rows."""
+    means = {row: {} for row in rows}
+    for row in rows:
+        cases = [c[row] for c in results.values() if row in c and "error" not in c[row]]
+        for key, _, _ in COLUMNS:
+            means[row][key] = mean(c.get(key) for c in cases)
+        means[row]["seconds"] = mean(c["seconds"] for c in cases)
+    lines = [
+        "| row | " + " | ".join(label for _, label, _ in COLUMNS) + " | time |",
+        "|---|" + "---:|" * (len(COLUMNS) + 1),
+    ]
+    for row in rows:
+        cells = [fmt(means[row][key], digits) for key, _, digits in COLUMNS]
+        lines.append(f"| {row} | " + " | ".join(cells) + f" | {fmt(means[row]['seconds'], 1)} s |")
+    ct = means.get("colour-transfer", {})
+    for row in ("preview", "standard"):
+        if row not in means or not ct:
+            continue
+        m = means[row]
+        if m["sw_patches"] is None or ct.get("sw_patches") is None:
+            continue
+        gain = 1.0 - m["sw_patches"] / ct["sw_patches"]
+        short_ratio = (m["short_rmse"] or 0.0) / max(ct.get("short_rmse") or 1e-12, 1e-12)
+        lines.append(
+            f"- {row}: patch SW {100 * gain:.0f}% below colour transfer (target >= {100 * TARGET_PATCH_GAIN:.0f}%: "
+            f"{'met' if gain >= TARGET_PATCH_GAIN else 'NOT met'}); SSIM {m['ssim']:.3f} (target >= {TARGET_SSIM}: "
+            f"{'met' if m['ssim'] >= TARGET_SSIM else 'NOT met'}); short-range RMSE {short_ratio:.2f}x colour "
+            f"transfer's (target <= {TARGET_SHORT_RATIO}x: {'met' if short_ratio <= TARGET_SHORT_RATIO else 'NOT met'})"
+        )
+    if not quick:
+        for row, limit in TARGET_SECONDS.items():
+            bonsai = [
+                c[row]["seconds"]
+                for (scene, _), c in results.items()
+                if scene == "bonsai" and row in c and "error" not in c[row]
+            ]
+            if bonsai:
+                worst = max(bonsai)
+                lines.append(
+                    f"- {row} on the bonsai: up to {worst:.0f} s (target <= {limit:.0f} s: {'met' if worst <= limit else 'NOT met'})"
+                )
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--quick", action="store_true", help="smoke run: demo scene, 4 cameras at 112x80, tiny schedules"
+    )
+    parser.add_argument("--scenes", default="bonsai,luigi,demo", help="comma-separated: bonsai, luigi, demo")
+    parser.add_argument("--styles", help="comma-separated style names (default: every shared painting, or the demo's)")
+    parser.add_argument("--rows", default=",".join(ROWS), help="comma-separated rows (default: all)")
+    parser.add_argument("--markdown", metavar="FILE", help="also write the report to FILE (markdown)")
+    parser.add_argument("--json", metavar="FILE", help="also write every measurement to FILE")
+    parser.add_argument("--figures", metavar="DIR", help="write novel-view renders of every case to DIR")
+    parser.add_argument("--figure-views", default="0", help="comma-separated novel-view indices to write (default 0)")
+    parser.add_argument("--threads", type=int, help="torch threads in every case (default: torch's own choice)")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.worker:
+        return harness.run_worker(args.worker, WORKERS)
+
+    size = QUICK if args.quick else FULL
+    scenes = [s for s in args.scenes.split(",") if s]
+    unknown = [s for s in scenes if s not in SCENES]
+    if unknown:
+        parser.error(f"unknown scene(s): {', '.join(unknown)} (choose from {', '.join(SCENES)})")
+    scenes = [s for s in scenes if SCENES[s][0] is None or SCENES[s][0].is_file()]
+    if args.styles:
+        styles = [s for s in args.styles.split(",") if s]
+    else:
+        styles = sorted(p.stem for p in (SHARED / "styles").glob("*.jpg")) or ["demo"]
+    styles = [s for s in styles if s == "demo" or style_path(s) is not None] or ["demo"]
+    if args.quick:
+        scenes, styles = scenes[:1] if "demo" not in scenes else ["demo"], styles[:2]
+    rows = available_rows([r for r in args.rows.split(",") if r])
+    common = {**size, "threads": args.threads, "figures": args.figures}
+    common["figure_views"] = [int(v) for v in args.figure_views.split(",") if v]
+    if args.quick:
+        common["overrides"] = QUICK_OVERRIDES
+    if args.figures:
+        Path(args.figures).mkdir(parents=True, exist_ok=True)
+
+    started = time.perf_counter()
+    baseline = harness.call_worker(__file__, {"kind": "baseline", **common})
+    title = "## Quality benchmark" + (" (quick smoke run: says nothing about the targets)" if args.quick else "")
+    out = [
+        title,
+        "",
+        harness.machine_line(baseline),
+        f"- load average (1, 5, 15 min) at start: {load_average()}",
+        f"- cameras: {size['views']} orbit views at {size['width']}x{size['height']} to stylize from, "
+        f"{size['views']} novel views between them to evaluate on; metrics on covered pixels",
+        "",
+    ]
+    print("\n".join(out), flush=True)
+    results: dict = {}
+    for scene in scenes:
+        for style in styles:
+            case_rows = []
+            for row in rows:
+                print(f"  {scene} x {style}: {row} ...", file=sys.stderr, flush=True)
+                spec = {"kind": "case", "scene": scene, "style": style, "row": row, **common}
+                result = harness.call_worker(__file__, spec)
+                results.setdefault((scene, style), {})[row] = result
+                case_rows.append((row, result))
+            lines = [f"### {scene} x {style}", "", *table(case_rows), ""]
+            print("\n".join(lines), flush=True)
+            out += lines
+    lines = [f"### Means over {len(results)} scene x style pairs", "", *verdicts(results, rows, args.quick), ""]
+    lines.append(
+        f"Benchmark wall time: {(time.perf_counter() - started) / 60:.1f} min; load average at the end: {load_average()}."
+    )
+    print("\n".join(lines), flush=True)
+    out += lines
+    if args.markdown:
+        Path(args.markdown).write_text("\n".join(out) + "\n", encoding="utf-8")
+    if args.json:
+        flat = {f"{scene}/{style}": cases for (scene, style), cases in results.items()}
+        Path(args.json).write_text(json.dumps(flat, indent=1), encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,628 @@
+"""The weight-free ``synth`` proposal backend: patch grid, aggregation, search, PCA, library, content and
+colour helpers, the backend's contract, extreme inputs, and one real photo + painting."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from dresg_addon.errors import ConfigError, NumericalError
+from dresg_addon.proposal.synth import (
+    COVERED,
+    IRLS_EPS,
+    SynthBackend,
+    SynthSettings,
+    aggregate_patches,
+    build_library,
+    content_weight_map,
+    extract_patches,
+    fill_uncovered,
+    fuse_content,
+    irls_weights,
+    nearest_patches,
+    pass_scales,
+    patch_grid,
+    patch_index,
+    pca_basis,
+    robust_aggregate,
+    scale_ladder,
+    to_style_colors,
+)
+
+F64 = torch.float64
+# Renders of the backend tests. 56 rows, not 48: a 48-row image trips the patch_grid offset bug with 33
+# patches (see test_patch_grid_offset_beyond_the_last_corner), which would make results seed-dependent.
+H, W = 56, 72
+TIMESTEPS = (951, 501, 1)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """One torch thread: on a busy 2-core machine multithreaded LAPACK (the PCA) gets 10-20x slower."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def content_image(h: int = H, w: int = W) -> torch.Tensor:  # [3, h, w]
+    """A small synthetic 'photo': smooth shading, a bright disc and a dark bar (clear edges)."""
+    y, x = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+    image = torch.stack([0.25 + 0.3 * x, 0.45 + 0.2 * y, 0.2 + 0.1 * x * y])
+    disc = ((x - 0.35) ** 2 + (y - 0.45) ** 2 < 0.04).float()
+    bar = ((x > 0.6) & (x < 0.75) & (y > 0.15)).float()
+    image = image * (1 - disc) + disc * torch.tensor([0.9, 0.85, 0.6])[:, None, None]
+    return image * (1 - bar) + bar * torch.tensor([0.08, 0.1, 0.12])[:, None, None]
+
+
+def style_image(h: int = 64, w: int = 80, seed: int = 0) -> torch.Tensor:  # [3, h, w]
+    """A synthetic 'painting': diagonal blue/yellow strokes with noise."""
+    g = torch.Generator().manual_seed(seed)
+    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    stroke = 0.5 + 0.5 * torch.sin((x + 0.7 * y) / 2.5)
+    blue, yellow = torch.tensor([0.1, 0.2, 0.6]), torch.tensor([0.9, 0.8, 0.2])
+    image = stroke * blue[:, None, None] + (1 - stroke) * yellow[:, None, None]
+    return (image + 0.08 * torch.randn(3, h, w, generator=g)).clamp(0, 1)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Patches on a grid
+
+
+def slow_patches(image: torch.Tensor, ys, xs, size: int) -> torch.Tensor:  # [P, C size^2], cut by slicing
+    rows = [image[:, int(y) : int(y) + size, int(x) : int(x) + size].reshape(-1) for y in ys for x in xs]
+    return torch.stack(rows)
+
+
+GRID_CASES = [
+    # (H, W, size, gap, offset)
+    (10, 12, 3, 2, (0, 0)),
+    (17, 23, 5, 3, (1, 2)),
+    (32, 32, 9, 5, (4, 3)),
+    (20, 31, 7, 4, (3, 5)),
+    (12, 12, 4, 4, (3, 1)),  # gap = size
+    (9, 14, 9, 5, (0, 7)),  # one row of patches; the offset is taken modulo the gap
+    (56, 72, 33, 20, (19, 13)),
+]
+
+
+@pytest.mark.parametrize(("height", "width", "size", "gap", "offset"), GRID_CASES)
+def test_patch_grid_covers_every_pixel(height, width, size, gap, offset):
+    ys, xs = patch_grid(height, width, size, gap, offset)
+    for corners, length in ((ys, height), (xs, width)):
+        assert int(corners.min()) == 0 and int(corners.max()) == length - size
+        assert torch.equal(corners, corners.unique())  # sorted, no repeats
+    covered = torch.zeros(height, width, dtype=torch.long)
+    for y in ys.tolist():
+        for x in xs.tolist():
+            covered[y : y + size, x : x + size] += 1
+    assert bool((covered > 0).all())
+
+
+def test_patch_grid_rejects_patches_larger_than_the_image():
+    with pytest.raises(ValueError, match="larger than"):
+        patch_grid(8, 20, 9, 4)
+    with pytest.raises(ValueError, match="larger than"):
+        patch_grid(20, 8, 9, 4)
+    ys, xs = patch_grid(9, 9, 9, 5)  # exactly the image: one patch
+    assert ys.tolist() == [0] and xs.tolist() == [0]
+
+
+def test_patch_grid_offset_beyond_the_last_corner():
+    # SynthBackend._pass draws the offset in [0, gap); with 33 patches (gap 20) on a 48-row image the
+    # last corner is 15, so offsets 17..19 lie past it (a regression: they made torch.arange raise).
+    ys, _ = patch_grid(48, 64, 33, 20, (19, 0))
+    assert ys.tolist() == [0, 15]
+    ys, _ = patch_grid(20, 30, 20, 12, (5, 0))
+    assert ys.tolist() == [0]
+
+
+@pytest.mark.parametrize(("height", "width", "size", "gap", "offset"), GRID_CASES[:4])
+def test_patch_index_and_extract_match_slicing(height, width, size, gap, offset):
+    g = torch.Generator().manual_seed(height)
+    image = torch.rand(3, height, width, generator=g, dtype=F64)
+    ys, xs = patch_grid(height, width, size, gap, offset)
+    index = patch_index(ys, xs, size, width)
+    assert index.shape == (ys.numel() * xs.numel(), size * size)
+    patches = extract_patches(image, index)
+    expected = slow_patches(image, ys.tolist(), xs.tolist(), size)
+    assert torch.equal(patches, expected)
+    # Channel-major rows: the first size^2 values are red, then green, then blue.
+    first = image[:, :size, :size]
+    assert torch.equal(patches[0, : size * size], first[0].reshape(-1))
+    assert torch.equal(patches[0, 2 * size * size :], first[2].reshape(-1))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Aggregation
+
+
+def _grid(height, width, size, gap, offset=(0, 0)):
+    ys, xs = patch_grid(height, width, size, gap, offset)
+    corners = [(y, x) for y in ys.tolist() for x in xs.tolist()]
+    return corners, patch_index(ys, xs, size, width)
+
+
+def slow_aggregate(patches, corners, weights, shape, size):
+    channels, height, width = shape
+    total = torch.zeros(shape, dtype=patches.dtype)
+    weight = torch.zeros(height, width, dtype=patches.dtype)
+    for p, (y0, x0) in enumerate(corners):
+        patch = patches[p].reshape(channels, size, size)
+        for dy in range(size):
+            for dx in range(size):
+                total[:, y0 + dy, x0 + dx] += weights[p] * patch[:, dy, dx]
+                weight[y0 + dy, x0 + dx] += weights[p]
+    return total, weight
+
+
+def slow_irls(estimate, matches, corners, size, power, iterations):
+    """min sum ||R X - z||^r by IRLS with a plain loop: weights (||R X - z||^2 + IRLS_EPS)^((r - 2) / 2)."""
+    shape = tuple(estimate.shape)
+
+    def average(weights):
+        total, weight = slow_aggregate(matches, corners, weights, shape, size)
+        return torch.where(weight > 0, total / weight.clamp_min(1e-30), estimate)
+
+    x = average(torch.ones(len(corners), dtype=matches.dtype))
+    for _ in range(iterations):
+        weights = []
+        for p, (y0, x0) in enumerate(corners):
+            residual = x[:, y0 : y0 + size, x0 : x0 + size].reshape(-1) - matches[p]
+            weights.append((float(residual.square().sum()) + IRLS_EPS) ** ((power - 2.0) / 2.0))
+        x = average(torch.tensor(weights, dtype=matches.dtype))
+    return x
+
+
+def test_aggregate_patches_matches_a_loop():
+    g = torch.Generator().manual_seed(1)
+    shape, size = (3, 11, 13), 4
+    corners, index = _grid(11, 13, size, 3, (1, 2))
+    patches = torch.rand(len(corners), 3 * size * size, generator=g, dtype=F64)
+    weights = torch.rand(len(corners), generator=g, dtype=F64) + 0.1
+    total, weight = aggregate_patches(patches, index, weights, shape)
+    ref_total, ref_weight = slow_aggregate(patches, corners, weights, shape, size)
+    torch.testing.assert_close(total, ref_total, atol=1e-12, rtol=0)
+    torch.testing.assert_close(weight, ref_weight, atol=1e-12, rtol=0)
+
+
+def test_robust_aggregate_power_two_is_the_plain_average():
+    g = torch.Generator().manual_seed(2)
+    shape, size = (3, 10, 12), 4
+    corners, index = _grid(10, 12, size, 2)
+    matches = torch.rand(len(corners), 3 * size * size, generator=g, dtype=F64)
+    estimate = torch.rand(shape, generator=g, dtype=F64)
+    total, weight = slow_aggregate(matches, corners, torch.ones(len(corners), dtype=F64), shape, size)
+    out = robust_aggregate(estimate, matches, index, power=2.0, iterations=3)
+    torch.testing.assert_close(out, total / weight, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("power", [0.8, 1.2])
+def test_robust_aggregate_matches_a_loop_irls_and_resists_an_outlier(power):
+    shape, size = (3, 12, 12), 4
+    corners, index = _grid(12, 12, size, 2)
+    estimate = torch.full(shape, 0.3, dtype=F64)
+    matches = torch.full((len(corners), 3 * size * size), 0.5, dtype=F64)
+    g = torch.Generator().manual_seed(3)
+    matches += 0.01 * torch.randn(matches.shape, generator=g, dtype=F64)
+    outlier = corners.index((4, 4))
+    matches[outlier] = 1.0
+    out = robust_aggregate(estimate, matches, index, power=power, iterations=3)
+    torch.testing.assert_close(out, slow_irls(estimate, matches, corners, size, power, 3), atol=1e-10, rtol=0)
+    plain = robust_aggregate(estimate, matches, index, power=2.0, iterations=3)
+    region = (slice(None), slice(4, 8), slice(4, 8))  # the outlier's pixels, each covered by several patches
+    assert float((plain[region] - 0.5).abs().min()) > 0.05  # the outlier pulls the plain average
+    assert bool(((out[region] - 0.5).abs() < 0.5 * (plain[region] - 0.5).abs()).all())
+
+
+def test_robust_aggregate_keeps_uncovered_pixels():
+    g = torch.Generator().manual_seed(4)
+    shape, size = (3, 12, 12), 4
+    corners, index = _grid(12, 12, size, 4)
+    keep = [p for p, (y, x) in enumerate(corners) if not (y >= 8 and x >= 8)]  # the bottom-right corner uncovered
+    matches = torch.rand(len(keep), 3 * size * size, generator=g, dtype=F64)
+    estimate = torch.rand(shape, generator=g, dtype=F64)
+    out = robust_aggregate(estimate, matches, index[keep], power=0.8, iterations=2)
+    assert torch.equal(out[:, 8:, 8:], estimate[:, 8:, 8:])
+    torch.testing.assert_close(
+        out, slow_irls(estimate, matches, [corners[p] for p in keep], size, 0.8, 2), atol=1e-10, rtol=0
+    )
+
+
+def test_irls_weights():
+    assert bool(torch.isfinite(irls_weights(torch.zeros(3, dtype=F64), 0.8)).all())
+    norms = torch.linspace(0.0, 5.0, 50, dtype=F64)
+    for power in (0.5, 0.8, 1.5):
+        weights = irls_weights(norms, power)
+        assert bool(torch.isfinite(weights).all()) and bool((weights > 0).all())
+        assert bool((weights[1:] < weights[:-1]).all())
+    torch.testing.assert_close(irls_weights(norms, 2.0), torch.ones_like(norms))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Nearest patches and PCA
+
+
+@pytest.mark.parametrize("chunk", [1, 5, 37, 100])
+def test_nearest_patches_is_brute_force(chunk):
+    g = torch.Generator().manual_seed(5)
+    queries = torch.randn(37, 6, generator=g, dtype=F64)
+    library = torch.randn(23, 6, generator=g, dtype=F64)
+    found = nearest_patches(queries, library, chunk)
+    assert torch.equal(found, torch.cdist(queries, library).argmin(1))
+
+
+def test_nearest_patches_with_duplicate_library_rows():
+    g = torch.Generator().manual_seed(6)
+    library = torch.randn(10, 4, generator=g, dtype=F64)
+    library[7] = library[2]
+    library[9] = library[2]
+    queries = torch.stack([library[2], library[2] + 1e-3, library[5]])
+    found = nearest_patches(queries, library, chunk=2)
+    assert int(found[0]) in (2, 7, 9) and int(found[1]) in (2, 7, 9) and int(found[2]) == 5
+    assert torch.equal(library[found[0]], library[2])
+
+
+def test_pca_basis_is_orthonormal_and_finds_a_low_rank_subspace():
+    g = torch.Generator().manual_seed(7)
+    n, dim, rank = 300, 20, 3
+    truth = torch.linalg.qr(torch.randn(dim, rank, generator=g, dtype=F64)).Q
+    coeffs = torch.randn(n, rank, generator=g, dtype=F64) * torch.tensor([3.0, 2.0, 1.0], dtype=F64)
+    offset = torch.randn(dim, generator=g, dtype=F64)
+    samples = coeffs @ truth.T + offset + 1e-6 * torch.randn(n, dim, generator=g, dtype=F64)
+    mean, basis = pca_basis(samples, rank, torch.Generator().manual_seed(0))
+    assert basis.shape == (dim, rank) and basis.dtype == F64
+    torch.testing.assert_close(mean, samples.mean(0))
+    torch.testing.assert_close(basis.T @ basis, torch.eye(rank, dtype=F64), atol=1e-10, rtol=0)
+    assert float((truth - basis @ (basis.T @ truth)).norm()) < 1e-4
+    # More dims than the structure: still orthonormal.
+    _, wide = pca_basis(samples, 8, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(wide.T @ wide, torch.eye(8, dtype=F64), atol=1e-10, rtol=0)
+
+
+def test_pca_basis_is_seeded_and_capped():
+    g = torch.Generator().manual_seed(8)
+    samples = torch.randn(200, 30, generator=g)
+    first = pca_basis(samples, 5, torch.Generator().manual_seed(11))
+    again = pca_basis(samples, 5, torch.Generator().manual_seed(11))
+    assert torch.equal(first[0], again[0]) and torch.equal(first[1], again[1])
+    assert first[1].dtype == torch.float32
+    _, few_samples = pca_basis(torch.randn(5, 20, generator=g, dtype=F64), 32, torch.Generator().manual_seed(0))
+    assert few_samples.shape == (20, 5)
+    torch.testing.assert_close(few_samples.T @ few_samples, torch.eye(5, dtype=F64), atol=1e-10, rtol=0)
+    _, few_dims = pca_basis(torch.randn(50, 4, generator=g, dtype=F64), 32, torch.Generator().manual_seed(0))
+    assert few_dims.shape == (4, 4)
+    torch.testing.assert_close(few_dims.T @ few_dims, torch.eye(4, dtype=F64), atol=1e-10, rtol=0)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Style library
+
+
+def _all_patches(image: torch.Tensor, size: int) -> torch.Tensor:
+    _, h, w = image.shape
+    return slow_patches(image, range(h - size + 1), range(w - size + 1), size)
+
+
+def _rows_in(rows: torch.Tensor, pool: torch.Tensor) -> torch.Tensor:  # [R] bool: the row is (exactly) in pool
+    return (rows[:, None, :] == pool[None, :, :]).all(-1).any(1)
+
+
+def test_build_library_holds_every_patch_and_its_mirror():
+    style = torch.rand(3, 12, 14, generator=torch.Generator().manual_seed(9), dtype=F64)
+    size = 5
+    library = build_library(style, size, SynthSettings(library_size=1000), torch.Generator().manual_seed(0))
+    originals, mirrored = _all_patches(style, size), _all_patches(style.flip(-1), size)
+    assert library.patches.shape == (2 * originals.shape[0], 3 * size * size) <= (1000, 3 * size * size)
+    assert bool(_rows_in(originals, library.patches).all())
+    assert bool(_rows_in(mirrored, library.patches).all())
+    torch.testing.assert_close(library.projected, (library.patches - library.mean) @ library.basis)
+    torch.testing.assert_close(library.project(library.patches), library.projected)
+
+
+@pytest.mark.parametrize("library_size", [10, 11, 50, 51])
+def test_build_library_subset_is_capped_seeded_and_has_mirrored_patches(library_size):
+    style = torch.rand(3, 12, 14, generator=torch.Generator().manual_seed(9), dtype=F64)
+    size = 5
+    settings = SynthSettings(library_size=library_size)
+    library = build_library(style, size, settings, torch.Generator().manual_seed(0))
+    assert 0 < library.patches.shape[0] <= library_size
+    originals, mirrored = _all_patches(style, size), _all_patches(style.flip(-1), size)
+    from_style, from_mirror = _rows_in(library.patches, originals), _rows_in(library.patches, mirrored)
+    assert bool((from_style | from_mirror).all())  # every row is a real patch
+    assert bool(from_mirror.any()) and bool(from_style.any())
+    again = build_library(style, size, settings, torch.Generator().manual_seed(0))
+    assert torch.equal(library.patches, again.patches) and torch.equal(library.projected, again.projected)
+    other = build_library(style, size, settings, torch.Generator().manual_seed(1))
+    assert not torch.equal(library.patches, other.patches)
+
+
+def test_build_library_on_a_style_the_size_of_the_patch():
+    style = torch.rand(3, 5, 5, generator=torch.Generator().manual_seed(10), dtype=F64)
+    library = build_library(style, 5, SynthSettings(), torch.Generator().manual_seed(0))
+    assert library.patches.shape == (2, 75)
+    assert torch.equal(library.patches[0], style.reshape(-1))
+    assert torch.equal(library.patches[1], style.flip(-1).reshape(-1))
+    assert bool(torch.isfinite(library.projected).all())
+
+
+# ----------------------------------------------------------------------------------------------------
+# Scales
+
+
+@pytest.mark.parametrize("levels", [1, 2, 3])
+def test_scale_plan_stays_in_range(levels):
+    settings = SynthSettings()
+    for level, size in scale_ladder(levels, settings):
+        assert level in range(levels) and size in settings.patch_sizes
+    for noise_fraction in (0.0, 0.2, 0.5, 0.9, 1.0):
+        for passes in (1, 2, 3, 6):
+            plan = pass_scales(noise_fraction, passes, levels, settings)
+            assert len(plan) == passes
+            for level, size in plan:
+                assert level in range(levels) and size in settings.patch_sizes
+    for passes in (2, 3, 6):
+        assert pass_scales(0.0, passes, levels, settings)[-1][0] == 0
+
+
+# ----------------------------------------------------------------------------------------------------
+# Content and colour
+
+
+def test_fill_uncovered_takes_nearby_covered_colours():
+    red, blue = torch.tensor([0.9, 0.1, 0.1], dtype=F64), torch.tensor([0.1, 0.2, 0.9], dtype=F64)
+    image = torch.full((3, 8, 40), 7.0, dtype=F64)  # garbage where uncovered
+    image[:, :, :10] = red[:, None, None]
+    image[:, :, 30:] = blue[:, None, None]
+    coverage = torch.full((8, 40), 0.2, dtype=F64)
+    coverage[:, :10] = 0.9
+    coverage[:, 30:] = 0.9
+    coverage[:, 10] = COVERED  # exactly the threshold counts as uncovered
+    out = fill_uncovered(image, coverage, sigma=2.0)
+    assert torch.equal(out[:, :, :10], image[:, :, :10]) and torch.equal(out[:, :, 30:], image[:, :, 30:])
+    assert bool(torch.isfinite(out).all())
+    torch.testing.assert_close(out[:, :, 10:15], red[:, None, None].expand(3, 8, 5), atol=1e-9, rtol=0)
+    torch.testing.assert_close(out[:, :, 25:30], blue[:, None, None].expand(3, 8, 5), atol=1e-9, rtol=0)
+    low, high = torch.minimum(red, blue)[:, None, None], torch.maximum(red, blue)[:, None, None]
+    assert bool((out >= low - 1e-9).all()) and bool((out <= high + 1e-9).all())  # no garbage left
+
+
+def test_fill_uncovered_all_or_nothing_covered():
+    image = torch.rand(3, 9, 11, generator=torch.Generator().manual_seed(12))
+    assert torch.equal(fill_uncovered(image, torch.ones(9, 11), 2.0), image)
+    assert torch.equal(fill_uncovered(image, torch.zeros(9, 11), 2.0), image)
+
+
+def test_content_weight_map_bounds_and_edges():
+    settings = SynthSettings()
+    low = settings.content_weight * settings.edge_floor
+    high = settings.content_weight * (settings.edge_floor + settings.edge_gain)
+    step = torch.full((3, 32, 32), 0.2)
+    step[:, :, 16:] = 0.8
+    weight = content_weight_map(step, settings)
+    assert weight.shape == (32, 32)
+    assert float(weight.min()) >= low - 1e-6 and float(weight.max()) <= high + 1e-6
+    assert float(weight[16, 15]) > float(weight[16, 2]) + 0.5 * (high - low)
+    torch.testing.assert_close(weight[16, 2], torch.tensor(low), atol=1e-6, rtol=0)
+    textured = torch.rand(3, 40, 30, generator=torch.Generator().manual_seed(13))
+    weight = content_weight_map(textured, settings)
+    assert float(weight.min()) >= low - 1e-6 and float(weight.max()) <= high + 1e-6
+    flat = content_weight_map(torch.full((3, 20, 24), 0.4), settings)
+    assert bool(torch.isfinite(flat).all())
+    torch.testing.assert_close(flat, torch.full((20, 24), low), atol=1e-6, rtol=0)
+
+
+def test_fuse_content_formula():
+    g = torch.Generator().manual_seed(14)
+    synthesis, content = torch.rand(3, 5, 6, generator=g, dtype=F64), torch.rand(3, 5, 6, generator=g, dtype=F64)
+    weight = 2.0 * torch.rand(5, 6, generator=g, dtype=F64)
+    out = fuse_content(synthesis, content, weight)
+    for y in range(5):
+        for x in range(6):
+            w = float(weight[y, x])
+            torch.testing.assert_close(out[:, y, x], (synthesis[:, y, x] + w * content[:, y, x]) / (1.0 + w))
+
+
+@pytest.mark.parametrize("histogram", [True, False])
+def test_to_style_colors_with_coverage(histogram):
+    image = content_image(32, 40)
+    style = style_image(30, 36)
+    coverage = torch.zeros(32, 40)
+    coverage[4:28, 6:34] = 0.9
+    coverage[2, :] = COVERED  # exactly the threshold: uncovered
+    out = to_style_colors(image, style, coverage, histogram)
+    kept = coverage <= COVERED
+    assert torch.equal(out[:, kept], image[:, kept])
+    assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+    covered = out[:, ~kept].double().mean(1)
+    torch.testing.assert_close(covered, style.double().mean((1, 2)), atol=0.03, rtol=0)
+    whole = to_style_colors(image, style, None, histogram)  # no coverage: every pixel
+    torch.testing.assert_close(whole.double().mean((1, 2)), style.double().mean((1, 2)), atol=0.03, rtol=0)
+    nothing = to_style_colors(image, style, torch.zeros(32, 40), histogram)
+    assert torch.equal(nothing, image)
+
+
+@pytest.mark.parametrize("histogram", [True, False])
+def test_to_style_colors_flat_and_grey_inputs(histogram):
+    style = style_image(30, 36)
+    flat_style = torch.tensor([0.7, 0.3, 0.2])[:, None, None].expand(3, 30, 36).contiguous()
+    grey = content_image(24, 30).mean(0, keepdim=True).expand(3, 24, 30).contiguous()
+    flat = torch.full((3, 24, 30), 0.5)
+    for image, target in ((grey, style), (flat, style), (grey, flat_style), (flat, flat_style), (grey, grey)):
+        out = to_style_colors(image, target, None, histogram)
+        assert bool(torch.isfinite(out).all())
+        assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+    out = to_style_colors(content_image(24, 30), flat_style, None, histogram)
+    torch.testing.assert_close(out, flat_style[:, :24, :30], atol=1e-5, rtol=0)
+
+
+# ----------------------------------------------------------------------------------------------------
+# The backend
+
+
+def test_encode_decode_are_the_clamped_identity():
+    backend = SynthBackend()
+    image = torch.rand(3, 9, 11, generator=torch.Generator().manual_seed(15))
+    assert torch.equal(backend.encode(image), image) and torch.equal(backend.decode(image), image)
+    wild = image * 3.0 - 1.0
+    assert torch.equal(backend.encode(wild), wild.clamp(0, 1)) and torch.equal(backend.decode(wild), wild.clamp(0, 1))
+    original = image.clone()
+    backend.encode(image).fill_(0.5)  # encode returns a copy
+    assert torch.equal(image, original)
+
+
+def test_settings_are_checked():
+    with pytest.raises(ConfigError, match="unknown"):
+        SynthBackend(no_such_setting=1)
+    for bad in (
+        {"robust_power": 0.0},
+        {"robust_power": 2.5},
+        {"gap_ratio": 0.0},
+        {"gap_ratio": 1.5},
+        {"step": 0.0},
+        {"patch_sizes": ()},
+        {"patch_sizes": (9, 0)},
+        {"irls_iterations": 0},
+        {"noise": float("nan")},
+        {"content_weight": -1.0},
+        {"library_size": 0},
+        {"library_size": 1},
+    ):
+        with pytest.raises(ConfigError):
+            SynthBackend(**bad)
+    assert SynthBackend(seed=3, noise=0.1).settings.seed == 3
+
+
+def test_bad_shapes_and_non_finite_inputs():
+    backend = SynthBackend()
+    state, style = content_image(), style_image()
+    with pytest.raises(ValueError):
+        backend.encode(torch.rand(4, 8, 8))
+    with pytest.raises(ValueError):
+        backend.decode(torch.rand(8, 8))
+    with pytest.raises(ValueError):
+        backend.propose(state, TIMESTEPS, style[:1], None)
+    with pytest.raises(ValueError):
+        backend.propose(state[:, :, :-1], TIMESTEPS, style, state)  # content and state differ
+    with pytest.raises(ValueError):
+        backend.propose(state, (1000,), style, None)  # timestep out of range
+    nan_state = state.clone()
+    nan_state[1, 2, 3] = float("nan")
+    with pytest.raises(NumericalError):
+        backend.propose(nan_state, TIMESTEPS, style, None)
+    inf_style = style.clone()
+    inf_style[0, 0, 0] = float("inf")
+    with pytest.raises(NumericalError):
+        backend.propose(state, TIMESTEPS, inf_style, None)
+    with pytest.raises(NumericalError):
+        backend.propose(state, TIMESTEPS, style, nan_state)
+    coverage = torch.ones(H, W)
+    coverage[0, 0] = float("nan")
+    with pytest.raises(NumericalError):
+        backend.propose(state, TIMESTEPS, style, None, coverage)
+    with pytest.raises(NumericalError):
+        backend.encode(nan_state)
+
+
+def test_propose_without_timesteps_returns_the_state():
+    state = content_image()
+    out, energies = SynthBackend().propose(state, (), style_image(), None)
+    assert torch.equal(out, state) and energies == []
+
+
+def test_propose_is_seeded_and_reports_one_energy_per_update():
+    state, style = content_image(), style_image()
+    backend = SynthBackend(seed=0)
+    first, energies = backend.propose(state, TIMESTEPS, style, state)
+    assert first.shape == state.shape
+    assert len(energies) == len(TIMESTEPS) and all(math.isfinite(e) and e >= 0 for e in energies)
+    again, energies_again = SynthBackend(seed=0).propose(state, TIMESTEPS, style, state)
+    assert torch.equal(first, again) and energies == energies_again
+    cached, _ = backend.propose(state, TIMESTEPS, style, state)  # cached libraries give the same result
+    assert torch.equal(first, cached)
+    other, _ = SynthBackend(seed=1).propose(state, TIMESTEPS, style, state)
+    assert not torch.equal(first, other)
+    assert float((first - state).abs().mean()) > 0.01  # it does change the image
+
+
+def test_propose_never_paints_the_background():
+    state, style = content_image(), style_image()
+    y, x = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    radius = ((y - H / 2) ** 2 + (x - W / 2) ** 2).sqrt()
+    coverage = (1.0 - (radius - 18.0) / 6.0).clamp(0.0, 1.0)  # a disc with a soft rim, background 0
+    out, energies = SynthBackend().propose(state, TIMESTEPS, style, state, coverage)
+    background = coverage < 0.25
+    assert bool(background.any()) and bool((coverage > 0.75).any())
+    assert torch.equal(out[:, background], state[:, background])
+    assert float((out - state)[:, coverage > 0.75].abs().mean()) > 0.01
+    assert len(energies) == len(TIMESTEPS) and all(math.isfinite(e) for e in energies)
+
+
+def _huge_style():
+    return style_image(1024, 1024, seed=3)
+
+
+STIFF = {
+    # name: (state, style, content, coverage)
+    "flat style": lambda: (content_image(), torch.tensor([0.8, 0.3, 0.1])[:, None, None].expand(3, 40, 40), None, None),
+    "1x1 style": lambda: (content_image(), torch.tensor([0.2, 0.6, 0.4]).reshape(3, 1, 1), content_image(), None),
+    "grey style": lambda: (content_image(), style_image().mean(0, keepdim=True).expand(3, 64, 80), None, None),
+    "thin style": lambda: (content_image(), style_image(6, 200), None, None),
+    "huge style": lambda: (content_image(), _huge_style(), content_image(), None),
+    "half-white style": lambda: (
+        content_image(),
+        torch.cat([style_image(64, 40), torch.ones(3, 64, 40)], -1),
+        None,
+        None,
+    ),
+    "black state": lambda: (torch.zeros(3, H, W), style_image(), None, None),
+    "black state and content": lambda: (torch.zeros(3, H, W), style_image(), torch.zeros(3, H, W), torch.ones(H, W)),
+    "coverage all zeros": lambda: (content_image(), style_image(), content_image(), torch.zeros(H, W)),
+    "coverage all ones": lambda: (content_image(), style_image(), content_image(), torch.ones(H, W)),
+    "coverage with a channel axis": lambda: (content_image(), style_image(), None, torch.ones(1, H, W)),
+}
+
+
+@pytest.mark.parametrize("case", list(STIFF))
+def test_propose_on_stiff_inputs(case):
+    state, style, content, coverage = STIFF[case]()
+    out, energies = SynthBackend().propose(state, TIMESTEPS, style, content, coverage)
+    assert out.shape == (3, H, W)
+    assert bool(torch.isfinite(out).all())
+    assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+    assert len(energies) == len(TIMESTEPS) and all(math.isfinite(e) for e in energies)
+    if case == "coverage all zeros":
+        assert torch.equal(out, state)
+
+
+def test_propose_on_a_render_smaller_than_the_largest_patch():
+    # 20x24: the 33 patch shrinks to 20 rows (gap 12, last corner 0), so most grid offsets fail.
+    state = content_image(20, 24)
+    out, _ = SynthBackend().propose(state, TIMESTEPS, style_image(20, 24), state)
+    assert bool(torch.isfinite(out).all())
+
+
+# ----------------------------------------------------------------------------------------------------
+# Real photo and painting
+
+
+def test_real_photo_takes_the_painting_texture(shared_data):
+    pytest.importorskip("OpenImageIO")
+    from dresg_addon.imageio import read_rgb, resize_image, to_tensor
+    from dresg_addon.metrics import sliced_wasserstein_patches, ssim_per_image
+    from dresg_addon.schedule import stage_timesteps
+
+    def read(relative):
+        return to_tensor(resize_image(read_rgb(shared_data(relative)), 224, 160)).clamp(0, 1)
+
+    photo = read("llff_fern/images_8/image000.png")
+    style = read("styles/starry_night.jpg")
+    timesteps = stage_timesteps(4, 6)[0].timesteps
+    result, energies = SynthBackend().propose(photo, timesteps, style, photo)
+    assert len(energies) == len(timesteps) and all(math.isfinite(e) for e in energies)
+    swd_photo = float(sliced_wasserstein_patches(photo[None], style)[0])  # measured 0.149
+    swd_result = float(sliced_wasserstein_patches(result[None], style)[0])  # measured 0.080
+    assert swd_result < 0.75 * swd_photo
+    assert float(ssim_per_image(result, photo)) > 0.6  # measured 0.805
