@@ -106,24 +106,15 @@ def load_case(spec: dict):
 
 def colour_transfer_scene(scene, cameras, style):
     """The post stage alone: one covariance colour map, fitted on the covered pixels of the base renders."""
-    from dataclasses import replace
-
-    import numpy as np
     import torch
 
-    from dresg_addon.color_transfer import covariance_color_transform
+    from dresg_addon.color_transfer import transfer_scene_colors
     from dresg_addon.raster import render_scene
-    from dresg_addon.raster.sh import SH_C0
 
     renders = [render_scene(scene, camera) for camera in cameras]
     stack = torch.stack([r.rgb.permute(2, 0, 1) for r in renders])
-    alphas = torch.stack([r.alpha for r in renders])
     style_chw = torch.from_numpy(style).permute(2, 0, 1).contiguous()
-    transform = covariance_color_transform(stack, style_chw, render_mask=alphas)
-    colours = torch.from_numpy(np.maximum(0.5 + SH_C0 * scene.sh_dc, 0.0)).double()
-    mapped = transform.apply_to_colors(colours).clamp(0.0, 1.0).numpy()
-    out = replace(scene, sh_dc=((mapped - 0.5) / SH_C0).astype(np.float32))
-    return out if scene.sh_rest is None else replace(out, sh_rest=np.zeros_like(scene.sh_rest))
+    return transfer_scene_colors(scene, stack, torch.stack([r.alpha for r in renders]), style_chw)
 
 
 def evaluate(base, stylized, cameras, style) -> tuple[dict, list]:

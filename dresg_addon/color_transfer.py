@@ -9,11 +9,13 @@ The same map applies to Gaussian colours (``ColorTransform.apply_to_colors``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 
 from .errors import CameraError, ImageError, NumericalError
+from .scene import SH_C0, GaussianScene
 
 EIGEN_FLOOR = 1e-6  # variance floor (std 1e-3, a quarter of an 8-bit level) for the inverse root
 COVERAGE_LOW, COVERAGE_HIGH = 0.25, 0.75  # alpha range over which a pixel goes from kept to recoloured
@@ -153,3 +155,120 @@ def match_color_histograms(pixels: torch.Tensor, style_pixels: torch.Tensor) -> 
     matched = torch.empty_like(x)
     matched.scatter_(0, order, quantiles)
     return (matched @ axes.T + mu_s).to(pixels.dtype)
+
+
+def transfer_scene_colors(
+    scene: GaussianScene,
+    renders: torch.Tensor,  # [V, 3, H, W] base renders of the scene
+    alphas: torch.Tensor,  # [V, H, W] their coverage
+    style: torch.Tensor,  # [3, Hs, Ws]
+) -> GaussianScene:
+    """The colour-only stylization: one covariance map from the covered pixels of ``renders`` to the style,
+    applied to every splat's base colour (clamped to [0, 1]); view-dependent SH bands are dropped.
+
+    It is the paper's post stage on its own, and the baseline a stylization must beat: a per-splat colour
+    change, so its cross-view consistency is the scene's own. ``scene`` is not modified.
+    """
+    transform = covariance_color_transform(renders, style, render_mask=alphas)
+    colors = torch.from_numpy(np.maximum(0.5 + SH_C0 * scene.sh_dc.astype(np.float64), 0.0))
+    mapped = transform.apply_to_colors(colors).clamp(0.0, 1.0).numpy()
+    out = replace(scene, sh_dc=((mapped - 0.5) / SH_C0).astype(np.float32))
+    return out if scene.sh_rest is None else replace(out, sh_rest=np.zeros_like(scene.sh_rest))
+
+
+HISTOGRAM_QUANTILES = 257  # knots of a ColorMap's per-axis curves
+
+
+@dataclass(frozen=True)
+class ColorMap:
+    """One function of colour, the same for every image it is applied to: the covariance transfer, then one
+    monotone piecewise-linear curve per principal colour axis of the style that takes the fitted pixels'
+    histogram along that axis to the style's (``fit_color_map``).
+
+    Fitted on the covered pixels of all the views at once, it recolours each view the same way, so a
+    surface seen by two views gets the same colour in both (per-image statistics would not).
+    """
+
+    transform: ColorTransform
+    origin: torch.Tensor  # [3] the style's mean colour, origin of the axes
+    axes: torch.Tensor  # [3, 3] the style's colour principal axes (columns)
+    source: torch.Tensor | None  # [3, K] sorted knots: quantiles of the transferred pixels along each axis
+    target: torch.Tensor | None  # [3, K] the style's quantiles at the same levels
+
+    def apply_to_images(self, images: torch.Tensor) -> torch.Tensor:  # [..., 3, H, W] -> same; not clamped
+        x = self.transform.apply_to_images(images.to(torch.float64))
+        if self.source is None:
+            return x.to(images.dtype)
+        y = (x.movedim(-3, -1) - self.origin) @ self.axes  # [..., H, W, 3]
+        for c in range(3):
+            y[..., c] = _monotone_curve(y[..., c], self.source[c], self.target[c])
+        return (y @ self.axes.T + self.origin).movedim(-1, -3).to(images.dtype)
+
+
+def _monotone_curve(x: torch.Tensor, knots: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """Piecewise-linear y(x) through (knots, values) (both non-decreasing), continued with slope 1 outside.
+
+    Flat runs of knots (a repeated value) take the mean of their values, so the curve is a function.
+    """
+    shape = x.shape
+    x = x.contiguous().reshape(-1)
+    k = knots.numel()
+    index = torch.searchsorted(knots, x).clamp(1, k - 1)  # knots[index - 1] <= x < knots[index] inside
+    x0, x1 = knots[index - 1], knots[index]
+    y0, y1 = values[index - 1], values[index]
+    span = x1 - x0
+    t = torch.where(span > 0, (x - x0) / torch.where(span > 0, span, 1.0), 0.5)
+    y = y0 + t.clamp(0.0, 1.0) * (y1 - y0)
+    y = torch.where(x < knots[0], values[0] + (x - knots[0]), y)
+    y = torch.where(x > knots[-1], values[-1] + (x - knots[-1]), y)
+    return y.reshape(shape)
+
+
+def fit_color_map(
+    images,  # [V, 3, H, W] or a list of [3, H, W] (sizes may differ)
+    style: torch.Tensor,  # [3, Hs, Ws]
+    masks=None,  # [V, H, W] or a list of [H, W] (bool or alpha); None: every pixel
+    histogram: bool = True,
+    mask_threshold: float = 0.5,
+) -> ColorMap:
+    """The :class:`ColorMap` of ``images`` (their covered pixels pooled) to ``style``.
+
+    Covariance transfer (``covariance_color_transform``) of the pooled pixels, then, when ``histogram``,
+    HISTOGRAM_QUANTILES matched quantiles per style colour axis: the pooled pixels' histogram along each
+    axis goes to the style's, as ``match_color_histograms`` does for one set, but as a curve that maps
+    any colour.
+    """
+    images = list(images)
+    if masks is None:
+        masks = [None] * len(images)
+    pooled = []
+    for image, mask in zip(images, masks):
+        try:
+            pooled.append(_masked_pixels(image, mask, mask_threshold, "render"))
+        except CameraError:
+            continue  # a view that sees nothing adds nothing; all of them empty is an error below
+    if not pooled:
+        raise CameraError("no render pixel is covered by the scene (empty masks); the cameras see nothing")
+    pixels = torch.cat(pooled)
+    stack = pixels.T.reshape(3, -1, 1)  # a [3, M, 1] image of the pooled pixels
+    transform = covariance_color_transform(stack, style)
+    mu_s, cov_s = color_moments(_masked_pixels(style, None, mask_threshold, "style"))
+    axes = torch.linalg.eigh((cov_s + cov_s.T) / 2.0).eigenvectors
+    if not histogram:
+        return ColorMap(transform, mu_s, axes, None, None)
+    levels = torch.linspace(0.0, 1.0, HISTOGRAM_QUANTILES, dtype=torch.float64)
+    mapped = (transform.apply_to_colors(pixels.to(torch.float64)) - mu_s) @ axes
+    reference = (style.detach().reshape(3, -1).T.to(torch.float64) - mu_s) @ axes
+    source = _quantiles(mapped, levels)
+    target = _quantiles(reference, levels)
+    return ColorMap(transform, mu_s, axes, source, target)
+
+
+def _quantiles(samples: torch.Tensor, levels: torch.Tensor) -> torch.Tensor:  # [M, 3], [K] -> [3, K]
+    """Quantiles of each column at ``levels`` by linear interpolation between order statistics."""
+    ordered = torch.sort(samples, dim=0).values  # [M, 3]
+    position = levels * (samples.shape[0] - 1)
+    low = position.floor().long()
+    high = (low + 1).clamp_max(samples.shape[0] - 1)
+    frac = (position - low)[:, None]
+    return (ordered[low] * (1.0 - frac) + ordered[high] * frac).T.contiguous()

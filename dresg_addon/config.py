@@ -68,8 +68,9 @@ class StylizeConfig:
     coverage_stop: float = 0.9999
     gain_threshold: float = 0.001
     # Leaving out what a scene does not need: stop the stages once the style distance of the active
-    # views (7x7 patch sliced Wasserstein to the style, covered pixels) improves by less than this
-    # fraction over a stage; 0 runs every stage. The post stage always runs.
+    # views (7x7 patch sliced Wasserstein to the style, covered pixels, at the proposal size) improves
+    # by less than this fraction over two stages (pipeline.stage_improvement); 0 runs every stage.
+    # The post stage always runs.
     early_stop: float = 0.0
     # Scene handling
     sh_rest: str = "zero"  # keep | zero: what happens to view-dependent SH bands of a stylized scene
@@ -126,20 +127,19 @@ PRESETS: dict[str, StylizeConfig] = {
         updates_per_stage=6,
         fit_steps=30,
         post_steps=30,
-        max_views=8,
+        content_weight=0.3,
+        max_views=16,
         optimize_geometry=False,
         early_stop=0.01,
     ),
-    # A quick look: fewer stages, steps and views, lower resolution, colour only.
+    # A quick look: fewer stages, updates, fit steps and views.
     "preview": StylizeConfig(
         stages=4,
-        updates_per_stage=6,
+        updates_per_stage=4,
         fit_steps=15,
-        post_steps=20,
-        proposal_width=224,
-        proposal_height=160,
-        max_views=4,
-        render_scale=0.5,
+        post_steps=15,
+        content_weight=0.3,
+        max_views=8,
         optimize_geometry=False,
         early_stop=0.01,
     ),

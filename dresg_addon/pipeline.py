@@ -230,6 +230,20 @@ class _Views:
         ).alpha
 
 
+EARLY_STOP_WINDOW = 2  # stages over which the style distance must improve (one stage may pause, e.g. a coarse one)
+
+
+def stage_improvement(distances: Sequence[float], window: int = EARLY_STOP_WINDOW) -> float | None:
+    """Relative drop of the style distance over the last ``window`` stages, (d[-1 - window] - d[-1]) / d[-1 - window].
+
+    ``distances[0]`` is the base renders'; None while fewer than ``window`` stages have run, or when the
+    earlier distance is 0 (nothing left to improve).
+    """
+    if len(distances) <= window or distances[-1 - window] <= 0:
+        return None
+    return (distances[-1 - window] - distances[-1]) / distances[-1 - window]
+
+
 def _proposal_backend(config: StylizeConfig):
     """The configured proposal backend; the run's seed and content weight w_c go to every backend that has them."""
     from .proposal import EnergyTerms, make_backend
@@ -545,16 +559,20 @@ def stylize(
         small = [_resize(r, ph, pw) for r in renders]
         return float(sliced_wasserstein_patches(small, style_t, masks=coverages, seed=config.seed).mean())
 
-    previous_distance = log[-1]["style_distance"] if log and "style_distance" in log[-1] else None
-    if previous_distance is None:
-        previous_distance = style_distance(current_renders())
-        say(f"style distance of the base renders: {previous_distance:.4f}")
+    # Style distances after each stage, the base renders' first (resumed runs take theirs from the log).
+    distances = [entry["style_distance"] for entry in log if "style_distance" in entry]
+    if not distances or "base_style_distance" not in log[0]:
+        distances.insert(0, style_distance(current_renders()))
+        say(f"style distance of the base renders: {distances[0]:.4f}")
+    else:
+        distances.insert(0, log[0]["base_style_distance"])
 
     for stage in stages[first_stage - 1 :]:
         n = stage.index
         stage_start = time.perf_counter()
         # Attention-guided proposals (Sec. 4.1): one fresh-Adam step per timestep, per view.
         energies = []
+        backend.prepare_stage(states, style_t, contents, coverages)
         for i in range(len(active)):
             check_cancel()
             report(
@@ -604,16 +622,16 @@ def stylize(
         # Feedback: re-encode the fitted render (Algorithm 1, last line).
         renders = current_renders()
         distance = style_distance(renders)
-        improvement = (previous_distance - distance) / previous_distance if previous_distance > 0 else 0.0
-        entry.update(style_distance=distance, style_improvement=improvement)
-        stop = config.early_stop > 0 and n < n_stages and improvement < config.early_stop
+        distances.append(distance)
+        entry.update(style_distance=distance, base_style_distance=distances[0])
+        improvement = stage_improvement(distances)
+        stop = config.early_stop > 0 and n < n_stages and improvement is not None and improvement < config.early_stop
         if stop:
             entry["early_stop"] = True
             say(
-                f"stopping after stage {n} of {n_stages}: the style distance improved by {improvement:.1%} "
-                f"(< {config.early_stop:.1%}); the remaining stages are left out"
+                f"stopping after stage {n} of {n_stages}: over the last {EARLY_STOP_WINDOW} stages the style "
+                f"distance improved by {improvement:.1%} (< {config.early_stop:.1%}); the remaining stages are left out"
             )
-        previous_distance = distance
         if config.feedback:
             states = [backend.encode(_resize(r, ph, pw)) for r in renders]
         if checkpoint is not None:

@@ -6,12 +6,15 @@ import pytest
 import torch
 
 from dresg_addon.color_transfer import (
+    HISTOGRAM_QUANTILES,
     color_moments,
     color_transfer,
     covariance_color_transform,
     coverage_weight,
+    fit_color_map,
     match_color_histograms,
     symmetric_sqrt,
+    transfer_scene_colors,
 )
 from dresg_addon.errors import CameraError, ImageError, NumericalError
 
@@ -201,3 +204,79 @@ def test_coverage_weight_is_a_smoothstep():
     assert float(near[0]) < 1e-4 and float(1 - near[1]) < 1e-4
     image = torch.rand(2, 5, 7)
     assert coverage_weight(image).shape == image.shape
+
+
+def _views(seed: int = 0) -> list[torch.Tensor]:
+    """Two differently sized views of one warm, noisy scene."""
+    g = torch.Generator().manual_seed(seed)
+    base = torch.tensor([0.7, 0.4, 0.2]).view(3, 1, 1)
+    return [(base + 0.15 * torch.randn(3, h, w, generator=g)).clamp(0, 1) for h, w in ((20, 30), (24, 16))]
+
+
+def _style(seed: int = 1) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return (torch.tensor([0.1, 0.3, 0.8]).view(3, 1, 1) + 0.2 * torch.randn(3, 18, 22, generator=g)).clamp(0, 1)
+
+
+@pytest.mark.parametrize("histogram", [False, True])
+def test_color_map_is_one_function_of_colour_for_every_view(histogram):
+    views, style = _views(), _style()
+    color_map = fit_color_map(views, style, histogram=histogram)
+    together = color_map.apply_to_images(torch.cat([v.reshape(3, -1, 1) for v in views], 1))
+    apart = torch.cat([color_map.apply_to_images(v).reshape(3, -1, 1) for v in views], 1)
+    torch.testing.assert_close(together, apart)  # a pixel's new colour depends on its colour alone
+    same = torch.full((3, 4, 4), 0.5)
+    torch.testing.assert_close(color_map.apply_to_images(same), color_map.apply_to_images(same.clone()))
+
+
+def test_color_map_takes_the_pooled_views_to_the_style_histogram():
+    views, style = _views(), _style()
+    color_map = fit_color_map(views, style)
+    pooled = torch.cat([color_map.apply_to_images(v).reshape(3, -1) for v in views], 1).T.double()
+    reference = style.reshape(3, -1).T.double()
+    axes, origin = color_map.axes, color_map.origin
+    levels = torch.linspace(0.05, 0.95, 7, dtype=torch.float64)
+    for c in range(3):
+        ours = torch.quantile((pooled - origin) @ axes[:, c], levels)
+        theirs = torch.quantile((reference - origin) @ axes[:, c], levels)
+        torch.testing.assert_close(ours, theirs, atol=0.02, rtol=0)
+    assert color_map.source.shape == (3, HISTOGRAM_QUANTILES)
+
+
+def test_color_map_masks_flat_inputs_and_extrapolation():
+    views, style = _views(), _style()
+    masks = [torch.zeros(v.shape[1:]) for v in views]
+    masks[0][:, :10] = 1.0
+    masked = fit_color_map(views, style, masks)
+    cropped = fit_color_map([views[0][:, :, :10]], style)
+    torch.testing.assert_close(masked.source, cropped.source)  # only the covered pixels count
+    flat = fit_color_map([torch.full((3, 5, 5), 0.3)], torch.full((3, 4, 4), 0.6))
+    out = flat.apply_to_images(torch.rand(3, 6, 6))
+    assert bool(torch.isfinite(out).all())
+    extreme = masked.apply_to_images(torch.tensor([-5.0, 0.5, 7.0]).view(3, 1, 1))  # beyond every knot
+    assert bool(torch.isfinite(extreme).all())
+    with pytest.raises(CameraError):
+        fit_color_map(views, style, [torch.zeros(v.shape[1:]) for v in views])
+
+
+def test_transfer_scene_colors_recolours_every_splat_by_one_map():
+    import numpy as np
+
+    from dresg_addon.scene import SH_C0, GaussianScene
+
+    n = 5
+    colors = np.linspace(0.2, 0.8, 3 * n).reshape(n, 3)
+    scene = GaussianScene(
+        means=np.zeros((n, 3), np.float32),
+        log_scales=np.zeros((n, 3), np.float32),
+        quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        opacity_logits=np.zeros(n, np.float32),
+        sh_dc=((colors - 0.5) / SH_C0).astype(np.float32),
+        sh_rest=np.ones((n, 3, 3), np.float32),
+    )
+    views = _views()[:1]
+    out = transfer_scene_colors(scene, views[0][None], torch.ones(1, *views[0].shape[1:]), _style())
+    transform = covariance_color_transform(views[0], _style())
+    expected = transform.apply_to_colors(torch.from_numpy(colors)).clamp(0, 1).numpy()
+    np.testing.assert_allclose(0.5 + SH_C0 * out.sh_dc, expected, atol=1e-5)
+    assert not out.sh_rest.any() and scene.sh_rest.all()  # view-dependent bands dropped; the input untouched

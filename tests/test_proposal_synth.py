@@ -626,3 +626,39 @@ def test_real_photo_takes_the_painting_texture(shared_data):
     swd_result = float(sliced_wasserstein_patches(result[None], style)[0])  # measured 0.080
     assert swd_result < 0.75 * swd_photo
     assert float(ssim_per_image(result, photo)) > 0.6  # measured 0.805
+
+
+# ----------------------------------------------------------------------------------------------------
+# Colours shared by the views of a stage
+
+
+def test_prepare_stage_fits_one_colour_map_for_every_view():
+    from dresg_addon.color_transfer import fit_color_map
+
+    views = [content_image(), content_image().flip(-1)]
+    covers = [torch.ones(H, W), torch.ones(H, W)]
+    style = style_image()
+    backend = SynthBackend()
+    backend.prepare_stage(views, style, views, covers)
+    expected = fit_color_map(views, style, covers)
+    torch.testing.assert_close(backend._stage.states.source, expected.source)
+    torch.testing.assert_close(backend._stage.contents.source, expected.source)
+    content_map = backend._stage.contents
+    backend.prepare_stage([v * 0.9 for v in views], style, views, covers)  # next stage, same content views
+    assert backend._stage.contents is content_map  # reused, not refitted
+    backend.prepare_stage(views, style, views, covers)
+    out = [backend.propose(v, TIMESTEPS, style, v, c)[0] for v, c in zip(views, covers)]
+    again = SynthBackend()
+    again.prepare_stage(views, style, views, covers)
+    for v, c, first in zip(views, covers, out):
+        torch.testing.assert_close(again.propose(v, TIMESTEPS, style, v, c)[0], first, rtol=0, atol=0)
+    assert all(bool(torch.isfinite(o).all()) for o in out)
+
+
+def test_a_stage_for_another_style_falls_back_to_per_view_colours():
+    backend = SynthBackend()
+    backend.prepare_stage([content_image()], style_image(seed=3), [None], [None])
+    state = content_image()
+    ours = backend.propose(state, TIMESTEPS, style_image(), state)[0]
+    fresh = SynthBackend().propose(state, TIMESTEPS, style_image(), state)[0]
+    torch.testing.assert_close(ours, fresh, rtol=0, atol=0)  # the prepared maps belong to another style

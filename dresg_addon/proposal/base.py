@@ -82,6 +82,20 @@ class ProposalBackend(ABC):
     def decode(self, state: torch.Tensor) -> torch.Tensor:
         """State -> [3, H, W] image in [0, 1]."""
 
+    def prepare_stage(
+        self,
+        states: Sequence[torch.Tensor],  # every active view's state
+        style_image: torch.Tensor,  # [3, H, W]
+        contents: Sequence[torch.Tensor | None],  # [3, H, W] per view
+        coverages: Sequence[torch.Tensor | None],  # [H, W] per view
+    ) -> None:
+        """Called once per stage, with every active view, before that stage's ``propose`` calls.
+
+        A backend whose proposals share statistics across views (synth: one colour map for all of them,
+        so a surface gets the same colour in every view) computes them here; the default does nothing.
+        """
+        return None
+
     @abstractmethod
     def propose(
         self,
