@@ -6,7 +6,9 @@
         --proposal-size WxH --max-views V] [--variants full,no-qc,...] [--markdown OUT.md] [--json OUT.json]
 
 Variants (each changes one setting of the base configuration, the preview preset unless flags say
-otherwise): the full method; w/o Q_c, w/o K_s, w/o V_s (the attention energy terms); w/o feedback
+otherwise): the full method; w/o Q_c (the content term: the content query of the attention energy, the
+content fusion of the synth backend); w/o K_s, w/o V_s (attention backends only: the synth backend has
+no attention energy, so they are left out for it); w/o feedback
 (the latent is not re-encoded from the fitted render); w/o colour-gradient projection (view
 gradients averaged instead of PCGrad); image-space scaling (the residual target of Eq. 12 in image
 space instead of RGB logits); and the residual-strength schedules fixed-1, fixed-2, triangle and
@@ -14,7 +16,8 @@ timestep-cosine against the SNR-balanced default.
 
 Pairs: the shared bonsai (orbit cameras) with two shared paintings when ../shared/data is present,
 else the built-in demo scene and painting. Metrics (``dresg_addon.metrics`` through
-``dresg_addon.report.ViewEvaluator``) on every orbit view, averaged over the pairs: sliced
+``dresg_addon.report.ViewEvaluator``) on the novel views between the orbit cameras (covered pixels),
+averaged over the pairs: sliced
 Wasserstein distances of colours and 7x7 patches to the style (lower is better), SSIM and gradient
 structure to the base render (higher is better), masked RMSE of the exact warp for gap 1 and N/2
 (lower is better), and the stylization's wall time. ``--quick`` shrinks the base configuration like
@@ -39,8 +42,8 @@ if str(REPO) not in sys.path:
 VARIANTS = (
     ("full", "DReSG (full)", "both", {}),
     ("no-qc", "w/o Q_c", "components", {"use_content_query": False}),
-    ("no-ks", "w/o K_s", "components", {"use_style_keys": False}),
-    ("no-vs", "w/o V_s", "components", {"use_style_values": False}),
+    ("no-ks", "w/o K_s", "components", {"use_style_keys": False}),  # attention backends only
+    ("no-vs", "w/o V_s", "components", {"use_style_values": False}),  # attention backends only
     ("no-feedback", "w/o feedback", "components", {"feedback": False}),
     ("no-pcgrad", "w/o colour-gradient projection", "components", {"pcgrad": False}),
     ("image-space", "image-space scaling", "components", {"logit_space": False}),
@@ -73,6 +76,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--post-steps", type=int, help="fit steps of the post stage")
     parser.add_argument("--proposal-size", metavar="WxH", help="proposal resolution")
     parser.add_argument("--max-views", type=int, help="cap on active views")
+    parser.add_argument("--proposal", help="proposal backend (default: the preset's, synth)")
+    parser.add_argument("--model", metavar="PATH", help="local SD1.5 model (sd15)")
     parser.add_argument("--variants", metavar="A,B", help=f"subset of: {', '.join(v[0] for v in VARIANTS)}")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--markdown", metavar="OUT.md", help="also write the tables to this file")
@@ -94,6 +99,8 @@ def base_config(args):
         "fit_steps": args.fit_steps,
         "post_steps": args.post_steps,
         "max_views": args.max_views,
+        "proposal": args.proposal,
+        "model_path": args.model,
     }
     if args.proposal_size:
         try:
@@ -104,14 +111,19 @@ def base_config(args):
     return config.with_(**{k: v for k, v in changes.items() if v is not None})
 
 
-def chosen_variants(args):
+ATTENTION_ONLY = ("no-ks", "no-vs")
+
+
+def chosen_variants(args, proposal: str):
     if not args.variants:
-        return list(VARIANTS)
+        return [v for v in VARIANTS if proposal != "synth" or v[0] not in ATTENTION_ONLY]
     keys = [k.strip() for k in args.variants.split(",") if k.strip()]
     known = {v[0]: v for v in VARIANTS}
     unknown = [k for k in keys if k not in known]
     if unknown:
         raise SystemExit(f"unknown variant(s) {', '.join(unknown)}; choose from {', '.join(known)}")
+    if proposal == "synth" and set(keys) & set(ATTENTION_ONLY):
+        raise SystemExit("w/o K_s and w/o V_s change the attention energy, which the synth backend has not")
     return [known[k] for k in keys]
 
 
@@ -124,11 +136,11 @@ def run(args) -> dict:
         scene=args.scene, styles=tuple(args.styles or ()), width=args.width, height=args.height, views=args.views
     ).resolved()
     inputs = load_inputs(options)
-    variants = chosen_variants(args)
+    variants = chosen_variants(args, config.proposal)
     print(f"{inputs.scene_label}; styles: {', '.join(n for n, _ in inputs.styles)}", file=sys.stderr)
     results = {key: [] for key, *_ in variants}
     started = time.perf_counter()
-    evaluator = ViewEvaluator(inputs.scene, inputs.cameras)
+    evaluator = ViewEvaluator(inputs.scene, inputs.eval_cameras)
     for style_name, style in inputs.styles:
         for key, label, _, changes in variants:
             variant = config.with_(**changes)
@@ -146,7 +158,8 @@ def run(args) -> dict:
         "machine": machine,
         "scene": inputs.scene_label,
         "styles": [n for n, _ in inputs.styles],
-        "cameras": f"{len(inputs.cameras)} orbit views at {options.width}x{options.height}",
+        "cameras": f"{len(inputs.cameras)} orbit views at {options.width}x{options.height} (metrics on the "
+        f"{len(inputs.eval_cameras)} novel views between them)",
         "config": config.to_dict(),
         "variants": [(key, label, table) for key, label, table, _ in variants],
         "results": results,
@@ -184,7 +197,7 @@ def markdown(report: dict) -> str:
         f"Ablations on {report['scene']} with {', '.join(report['styles'])} ({len(report['styles'])} pairs), "
         f"{report['cameras']}; base configuration: {c['stages']} stages x {c['updates_per_stage']} updates, "
         f"{c['fit_steps']} fit / {c['post_steps']} post steps, proposals {c['proposal_width']}x"
-        f"{c['proposal_height']}, patch proposal backend, geometry {'on' if c['optimize_geometry'] else 'off'}, "
+        f"{c['proposal_height']}, {c['proposal']} proposal backend, geometry {'on' if c['optimize_geometry'] else 'off'}, "
         f"at most {c['max_views'] or 'all'} active views, render scale {c['render_scale']}. Means over the pairs; "
         f"time is the stylization's wall time. Machine: {report['machine']}.",
         "",

@@ -18,7 +18,6 @@ Rows.
 - ``unstylized``: the scene as it is.
 - ``colour-transfer``: the paper's post stage alone: one covariance (affine) colour map from the base
   renders of the 16 cameras (covered pixels) to the style, applied to every splat's colour.
-- ``patch``: the old weight-free backend at ``preview`` (while it exists).
 - ``preview`` and ``standard``: the stylizer's presets (the ``synth`` backend).
 
 Columns, from ``dresg_addon.metrics``, means over the evaluation views, on the pixels the scene covers
@@ -53,7 +52,7 @@ SCENES = {
     "luigi": (SHARED / "scenes" / "luigi.ply", (0.0, 1.0, 0.0)),
     "demo": (None, (0.0, -1.0, 0.0)),
 }
-ROWS = ("unstylized", "colour-transfer", "patch", "preview", "standard")
+ROWS = ("unstylized", "colour-transfer", "preview", "standard")
 FULL = {"views": 16, "width": 448, "height": 320}
 QUICK = {"views": 4, "width": 112, "height": 80}
 QUICK_OVERRIDES = {
@@ -172,8 +171,7 @@ def run_case(spec: dict) -> dict:
     elif row == "colour-transfer":
         out = colour_transfer_scene(scene, train, style)
     else:
-        name, overrides = ("preview", {"proposal": "patch"}) if row == "patch" else (row, {})
-        config = preset(name, **overrides, **spec.get("overrides", {}))
+        config = preset(row, **spec.get("overrides", {}))
         result = stylize(scene, train, style, config)
         out, log = result.scene, result.log
     seconds = time.perf_counter() - started
@@ -230,17 +228,6 @@ def table(rows: list[tuple[str, dict]]) -> list[str]:
         cells = [fmt(r.get(key), digits) for key, _, digits in COLUMNS]
         out.append(f"| {name} | " + " | ".join(cells) + f" | {r['seconds']:.1f} s | {r['peak_rss'] / 1e9:.2f} GB |")
     return out
-
-
-def available_rows(requested: list[str]) -> list[str]:
-    import importlib.util
-
-    rows = []
-    for row in requested:
-        if row == "patch" and importlib.util.find_spec("dresg_addon.proposal.patch") is None:
-            continue  # the old backend is gone
-        rows.append(row)
-    return rows
 
 
 def verdicts(results: dict, rows: list[str], quick: bool) -> list[str]:
@@ -319,7 +306,10 @@ def main(argv: list[str] | None = None) -> int:
     styles = [s for s in styles if s == "demo" or style_path(s) is not None] or ["demo"]
     if args.quick:
         scenes, styles = scenes[:1] if "demo" not in scenes else ["demo"], styles[:2]
-    rows = available_rows([r for r in args.rows.split(",") if r])
+    rows = [r for r in args.rows.split(",") if r]
+    unknown_rows = [r for r in rows if r not in ROWS]
+    if unknown_rows:
+        parser.error(f"unknown row(s): {', '.join(unknown_rows)} (choose from {', '.join(ROWS)})")
     common = {**size, "threads": args.threads, "figures": args.figures}
     common["figure_views"] = [int(v) for v in args.figure_views.split(",") if v]
     if args.quick:

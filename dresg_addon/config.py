@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass, fields, replace
 from .errors import ConfigError
 
 SCHEDULES = ("snr-balanced", "fixed-1", "fixed-2", "triangle", "timestep-cosine")
-PROPOSALS = ("synth", "patch", "sd15")
+PROPOSALS = ("synth", "sd15")
 SH_REST_MODES = ("keep", "zero")
 
 
@@ -34,7 +34,7 @@ class StylizeConfig:
     schedule: str = "snr-balanced"  # residual strength: snr-balanced | fixed-1 | fixed-2 | triangle | timestep-cosine
     logit_space: bool = True  # False: the image-space scaling ablation
     # Proposal (Sec. 4.1)
-    proposal: str = "synth"  # synth | patch | sd15
+    proposal: str = "synth"  # synth | sd15
     model_path: str = ""  # local SD1.5 folder or .safetensors (sd15 only)
     proposal_width: int = 448
     proposal_height: int = 320

@@ -236,11 +236,13 @@ def demo_cameras(
     fov_x_deg: float = 60.0,
     elevation_deg: float = 25.0,
     distance: float = 4.5,
+    azimuth_offset_deg: float = 0.0,
 ) -> list[Camera]:
     """``n`` cameras on a ring around the demo objects, looking at their centre from above.
 
     ``scene`` is accepted for symmetry with real scenes and is not needed: the ring is fixed to the
     demo's layout, which frames the objects with the ground filling the lower part of the image.
+    ``azimuth_offset_deg`` turns the ring (half a step gives the novel views between its cameras).
     """
     if n < 1:
         raise ValueError(f"demo_cameras: n={n} must be at least 1")
@@ -248,7 +250,7 @@ def demo_cameras(
     elevation = math.radians(elevation_deg)
     cameras = []
     for k in range(n):
-        azimuth = 2 * math.pi * k / n
+        azimuth = 2 * math.pi * k / n + math.radians(azimuth_offset_deg)
         offset = np.array(
             [math.sin(azimuth) * math.cos(elevation), -math.sin(elevation), -math.cos(azimuth) * math.cos(elevation)]
         )

@@ -130,6 +130,46 @@ def feature_distance(render_features: torch.Tensor, base_features: torch.Tensor,
     return _per_image_feature(render_features, base_features, distance).mean()
 
 
+FEATURE_PATCH = 4  # side of a feature's patch, in pooled pixels
+FEATURE_CONTRAST_FLOOR = 0.05  # keeps flat patches from being blown up by contrast normalisation
+
+
+def stride_patches(image: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Patches on a grid of step ``stride``: area-pool ``image`` [B, 3, H, W] by stride/2, take 4x4 patches at step 2.
+
+    Returns (raw, normalised), each [B, 3, 16, h, w] with h = max(1, H // stride) (w alike).
+    ``normalised`` is (patch - its mean colour) / (its RMS contrast + FEATURE_CONTRAST_FLOOR).
+    """
+    b, _, height, width = image.shape
+    gh, gw = max(1, height // stride), max(1, width // stride)
+    pooled = F.interpolate(image, size=(2 * gh, 2 * gw), mode="area")
+    pooled = F.pad(pooled, (1, 1, 1, 1), mode="replicate")
+    raw = F.unfold(pooled, FEATURE_PATCH, stride=2).reshape(b, 3, FEATURE_PATCH * FEATURE_PATCH, gh, gw)
+    centred = raw - raw.mean(2, keepdim=True)
+    contrast = centred.pow(2).mean((1, 2), keepdim=True).add(1e-8).sqrt()
+    return raw, centred / (contrast + FEATURE_CONTRAST_FLOOR)
+
+
+def patch_feature_maps(image: torch.Tensor) -> torch.Tensor:  # image [B, 3, H, W] -> [B, 96, h, w]
+    """Fixed, weight-free structure features for the fit loss's feature term when no DINO weights are given.
+
+    The contrast-normalised 4x4 colour patches on grids of step 8 and 16 (the step-16 grid upsampled to
+    the step-8 one; h = max(1, H // 8), w alike), differentiable in ``image``. Invariant to a colour
+    offset, so they describe local structure rather than the palette: a stylized render whose edges and
+    layout stay keeps them near the base render's.
+
+    >>> patch_feature_maps(torch.rand(2, 3, 64, 48)).shape
+    torch.Size([2, 96, 8, 6])
+    """
+    if image.dim() != 4 or image.shape[1] != 3:
+        raise ValueError(f"patch_feature_maps expects [B, 3, H, W], got {list(image.shape)}")
+    _, fine = stride_patches(image, 8)
+    _, coarse = stride_patches(image, 16)
+    fine = fine.flatten(1, 2)
+    coarse = F.interpolate(coarse.flatten(1, 2), size=fine.shape[-2:], mode="nearest")
+    return torch.cat([fine, coarse], 1)
+
+
 def fit_loss(
     render: torch.Tensor,  # [3, H, W] or [B, 3, H, W]
     target: torch.Tensor,  # same shape

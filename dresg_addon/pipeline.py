@@ -251,10 +251,7 @@ def _proposal_backend(config: StylizeConfig):
     if config.proposal == "synth":
         weight = config.content_weight if config.use_content_query else 0.0
         return make_backend("synth", seed=config.seed, content_weight=weight)
-    if config.proposal == "sd15":
-        backend = make_backend("sd15", model_path=config.model_path)
-    else:
-        backend = make_backend(config.proposal, seed=config.seed)  # the patch projections follow the run's seed
+    backend = make_backend("sd15", model_path=config.model_path)
     backend.learning_rate = config.latent_lr
     backend.terms = EnergyTerms(
         config.content_weight, config.use_content_query, config.use_style_keys, config.use_style_values
@@ -271,7 +268,7 @@ def _feature_extractor(config: StylizeConfig, log: Callable[[str], None]):
 
         log(f"feature loss: DINO from {config.dino_path}")
         return DinoFeatures(config.dino_path)
-    from .proposal.patch import patch_feature_maps
+    from .losses import patch_feature_maps
 
     log("feature loss: weight-free patch features (no DINO weights given)")
     return patch_feature_maps

@@ -426,17 +426,20 @@ def case_scene_scaled_down() -> CaseResult:
 def case_flat_style_image() -> CaseResult:
     """Flat style images (black, white, a mid colour) through the proposal, colour transfer and stylize."""
     from .color_transfer import covariance_color_transform
-    from .proposal import EnergyTerms, make_backend, optimize_proposal
+    from .proposal import make_backend
     from .raster import RasterSettings, render_scene
 
     scene, cameras = tiny_scene(), tiny_cameras()
-    render = render_scene(scene, cameras[0], RasterSettings()).rgb.permute(2, 0, 1)  # [3, 16, 24]
+    out = render_scene(scene, cameras[0], RasterSettings())
+    render = out.rgb.permute(2, 0, 1)  # [3, 16, 24]
     content = torch.nn.functional.interpolate(render[None], size=(16, 16), mode="area")[0]
+    coverage = torch.nn.functional.interpolate(out.alpha[None, None], size=(16, 16), mode="area")[0, 0]
     observed, ok = {}, True
-    backend = make_backend("patch")
+    backend = make_backend("synth")
     for label, color in (("black", 0.0), ("white", 1.0), ("mid", (0.2, 0.5, 0.8))):
         style = torch.from_numpy(_style(color)).permute(2, 0, 1).contiguous()
-        state, energies = optimize_proposal(backend, backend.encode(content), (951, 501), style, content, EnergyTerms())
+        backend.prepare_stage([content], style, [content], [coverage])
+        state, energies = backend.propose(backend.encode(content), (951, 501), style, content, coverage)
         proposal = backend.decode(state)
         transform = covariance_color_transform(render, style)
         moved = transform.apply_to_images(render.double())
@@ -449,7 +452,7 @@ def case_flat_style_image() -> CaseResult:
         observed[f"{label}: stylized colours"] = f"{summary['colour min']:.3g} .. {summary['colour max']:.3g}"
     return _result(
         "flat-colour style image",
-        "proposal (patch backend), covariance colour transfer, full stylize",
+        "proposal (synth backend), covariance colour transfer, full stylize",
         "style images of one colour (black 0, white 1, (0.2, 0.5, 0.8)): proposal energies and images finite and "
         "in [0, 1]; the colour transfer (a zero style covariance) maps every render pixel onto the style colour; "
         "a one-stage stylize stays finite",

@@ -84,7 +84,6 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         description="What proposes the stylized views at each stage",
         items=(
             ("synth", "Painting Synthesis (no download)", "Pastes the painting's own strokes; runs on the CPU"),
-            ("patch", "Patch Attention (no download)", "The earlier weight-free proposal: tints and blurs"),
             ("sd15", "Stable Diffusion 1.5", "The paper's diffusion proposal (model path in the add-on preferences)"),
         ),
         default="synth",

@@ -1,17 +1,20 @@
-"""Make the README's before/after figure of the real bonsai scene with two shared styles.
+"""Compose the README's before / colour transfer / ours / style figure from the quality benchmark's renders.
 
-    .venv/bin/python scripts/readme_figures.py [--preset preview] [--out docs/bonsai_before_after.png]
+    .venv/bin/python bench/quality.py --figures FIGS --figure-views 3
+    .venv/bin/python scripts/readme_figures.py --figures FIGS --view 3 \\
+        --pairs bonsai:starry_night,bonsai:the_scream,bonsai:woman-with-hat-matisse,luigi:starry_night,... \\
+        --out docs/before_after.png
 
-Needs ../shared/data (the bonsai scene and the public-domain paintings). Orbit cameras use the
-scene's own up direction from its camera hint.
+Every picture is a novel view of the benchmark (a camera between the ones the scene was stylized from), so
+the figure shows what the table measures. Rows are scene x style pairs; columns: the unstylized scene, the
+colour-transfer baseline, the ``standard`` preset (or ``--row``), and the style painting. Needs the
+shared paintings (../shared/data/styles) for the style column.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -19,38 +22,52 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from dresg_addon.config import preset  # noqa: E402
+from dresg_addon.demo import demo_style_image  # noqa: E402
 from dresg_addon.imageio import read_rgb, resize_image, write_image  # noqa: E402
-from dresg_addon.io import read_scene  # noqa: E402
-from dresg_addon.orbit import orbit_cameras  # noqa: E402
-from dresg_addon.pipeline import stylize  # noqa: E402
-from dresg_addon.raster import render_scene  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 
 
+def crop(image: np.ndarray, fraction: float) -> np.ndarray:  # [H, W, 3] -> [H, w, 3], the central columns
+    width = image.shape[1]
+    keep = max(1, round(width * fraction))
+    start = (width - keep) // 2
+    return image[:, start : start + keep]
+
+
+def style_tile(name: str, height: int, width: int) -> np.ndarray:
+    style = demo_style_image() if name == "demo" else read_rgb(DATA / "styles" / f"{name}.jpg")
+    h, w = style.shape[:2]
+    scale = min(height / h, width / w)
+    small = resize_image(style, max(1, round(w * scale)), max(1, round(h * scale)))
+    tile = np.ones((height, width, 3), np.float32)
+    top, left = (height - small.shape[0]) // 2, (width - small.shape[1]) // 2
+    tile[top : top + small.shape[0], left : left + small.shape[1]] = small
+    return tile
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--preset", default="preview")
-    parser.add_argument("--styles", nargs="+", default=["starry_night.jpg", "shipwreck.jpg"])
-    parser.add_argument("--views", type=int, default=16, help="orbit cameras to choose active views from")
-    parser.add_argument("--out", default=str(REPO / "docs" / "bonsai_before_after.png"))
+    parser.add_argument("--figures", required=True, help="the folder bench/quality.py --figures wrote")
+    parser.add_argument("--pairs", required=True, help="comma-separated scene:style pairs, one row each")
+    parser.add_argument("--view", type=int, default=3, help="novel-view index (as written by --figure-views)")
+    parser.add_argument("--row", default="standard", help="the stylized row to show (default: standard)")
+    parser.add_argument("--crop", type=float, default=0.62, help="share of the width kept, centred")
+    parser.add_argument("--out", default=str(REPO / "docs" / "before_after.png"))
     args = parser.parse_args()
-    scene = read_scene(DATA / "scenes" / "bonsai-7k-mini.splat")
-    hint = json.loads((DATA / "scenes" / "bonsai-7k-mini.camera_hint.json").read_text())
-    cameras = orbit_cameras(scene, args.views, up=hint["cameraUp"], elevation_deg=25.0, radius_scale=0.8)
-    shown = [cameras[0], cameras[args.views // 3]]
+    folder = Path(args.figures)
     rows = []
-    before = [render_scene(scene, c).rgb.numpy() for c in shown]
-    for name in args.styles:
-        style = read_rgb(DATA / "styles" / name)
-        started = time.perf_counter()
-        result = stylize(scene, cameras, style, preset(args.preset), messages=print)
-        print(f"{name}: {time.perf_counter() - started:.0f} s with preset {args.preset}")
-        after = [render_scene(result.scene, c).rgb.numpy() for c in shown]
-        thumb = resize_image(style, 224, 320)
-        rows.append(np.concatenate([before[0], after[0], after[1], thumb], 1))
-    write_image(args.out, np.concatenate(rows, 0))
+    for pair in args.pairs.split(","):
+        scene, style = pair.split(":")
+        before = read_rgb(folder / f"{scene}_v{args.view:02d}.png")
+        transfer = read_rgb(folder / f"{scene}_{style}_colour-transfer_v{args.view:02d}.png")
+        ours = read_rgb(folder / f"{scene}_{style}_{args.row}_v{args.view:02d}.png")
+        tiles = [crop(image, args.crop) for image in (before, transfer, ours)]
+        tiles.append(style_tile(style, *tiles[0].shape[:2]))
+        gap = np.ones((tiles[0].shape[0], 4, 3), np.float32)
+        rows.append(np.concatenate([t for tile in tiles for t in (tile, gap)][:-1], 1))
+        rows.append(np.ones((4, rows[-1].shape[1], 3), np.float32))
+    write_image(args.out, np.concatenate(rows[:-1], 0))
     print(f"wrote {args.out}")
     return 0
 

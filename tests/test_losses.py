@@ -169,3 +169,24 @@ def test_bad_inputs():
         FitLossWeights(dssim=-1.0)
     with pytest.raises(ConfigError):
         FitLossWeights(feature_distance="l2")
+
+
+def test_patch_feature_maps_describe_structure_not_palette():
+    from dresg_addon.losses import patch_feature_maps
+
+    g = torch.Generator().manual_seed(0)
+    ramp = torch.linspace(0, 1, 64)
+    image = (0.5 + 0.3 * torch.sin(8 * ramp)[None, None, :] * torch.cos(5 * ramp)[None, :48, None]).expand(3, 48, 64)
+    image = (image + 0.05 * torch.rand(3, 48, 64, generator=g))[None] * 0.8
+    feats = patch_feature_maps(image)
+    assert feats.shape == (1, 96, 48 // 8, 64 // 8)
+    shifted = patch_feature_maps(image + torch.tensor([0.1, -0.05, 0.15])[None, :, None, None])
+    assert torch.allclose(feats, shifted, atol=1e-4)  # a colour offset leaves structure unchanged
+    assert float((patch_feature_maps(image.flip(-1)) - feats).abs().mean()) > 0.1
+    batch = torch.cat([image, torch.rand(1, 3, 48, 64, generator=g)]).requires_grad_(True)
+    out = patch_feature_maps(batch)
+    assert out.shape[0] == 2 and torch.allclose(out[:1], feats, atol=1e-6)
+    out.abs().sum().backward()
+    assert torch.isfinite(batch.grad).all() and float(batch.grad.abs().sum()) > 0
+    with pytest.raises(ValueError, match=r"\[B, 3, H, W\]"):
+        patch_feature_maps(torch.zeros(3, 8, 8))

@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--stage-counts",
         type=_int_list,
         metavar="1,2,5",
-        help="stage counts of the preview preset (quick 1,2; full 1,2,5,10)",
+        help="stage counts of the default preset, early stop off (quick 1,2; full 1,2,4,6)",
     )
     parser.add_argument("--repeats", type=int, metavar="K", help="timing repeats per rasterizer knob (quick 1, full 3)")
     parser.add_argument("--no-stability", action="store_true", help="leave out the numerical-stability section")

@@ -55,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--proposal",
         choices=PROPOSALS,
-        help="proposal backend: synth (default, no weights), patch (no weights) or sd15",
+        help="proposal backend: synth (default, no weights) or sd15 (Stable Diffusion 1.5 on disk)",
     )
     parser.add_argument("--model", metavar="PATH", help="local Stable Diffusion 1.5 folder or .safetensors (sd15)")
     parser.add_argument("--dino", metavar="PATH", help="local DINO weights for the fit loss's feature term")
@@ -155,7 +155,7 @@ def run(args) -> int:
         )
         duration = f"{estimate / 3600:.1f} h" if estimate >= 3600 else f"{estimate / 60:.0f} min"
         print(
-            f"note: sd15 on this CPU takes about {duration} for this schedule (estimate); the patch backend takes minutes",
+            f"note: sd15 on this CPU takes about {duration} for this schedule (estimate); the synth backend takes minutes",
             file=sys.stderr,
         )
     if on_cpu and config.optimize_geometry:

@@ -1,7 +1,7 @@
 """Proposal backends: the attention-guided latent update of Sec. 4.1 behind one interface.
 
-``patch`` (default) needs no weights; ``sd15`` uses Stable Diffusion 1.5 from a local path and is
-imported only when chosen.
+``synth`` (default) needs no weights: example-based synthesis that pastes the painting's own strokes;
+``sd15`` uses Stable Diffusion 1.5 from a local path and is imported only when chosen.
 """
 
 from __future__ import annotations
@@ -13,10 +13,6 @@ def make_backend(name: str, **kwargs) -> ProposalBackend:
     """Build a backend by name; ``sd15`` needs ``model_path=`` and imports diffusers lazily."""
     from ..errors import ConfigError
 
-    if name == "patch":
-        from .patch import PatchBackend
-
-        return PatchBackend(**kwargs)
     if name == "synth":
         from .synth import SynthBackend
 
@@ -25,7 +21,7 @@ def make_backend(name: str, **kwargs) -> ProposalBackend:
         from .sd15 import SD15Backend
 
         return SD15Backend(**kwargs)
-    raise ConfigError(f"unknown proposal backend {name!r} (choose 'patch' or 'sd15')")
+    raise ConfigError(f"unknown proposal backend {name!r} (choose 'synth' or 'sd15')")
 
 
 __all__ = [

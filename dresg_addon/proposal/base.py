@@ -4,10 +4,9 @@ Every backend maps an image to a state (``encode``), decodes a state to an image
 ``propose``s: it updates a view's state once per scheduler timestep of a stage, given the style image,
 the view's content image and the render's coverage (alpha). Two kinds implement it:
 
-- :class:`AttentionBackend` (``sd15``, ``patch``): a latent with self-attention Q/K/V features at a
-  timestep; ``propose`` is one fresh-Adam step of the attention energy (Eqs. 6-9) per timestep
-  (:func:`optimize_proposal`). The energy, a backend's optional extra term (``extra_energy``) and the
-  loop live here, once.
+- :class:`AttentionBackend` (``sd15``): a latent with self-attention Q/K/V features at a timestep;
+  ``propose`` is one fresh-Adam step of the attention energy (Eqs. 6-9) per timestep
+  (:func:`optimize_proposal`). The energy and the loop live here, once.
 - ``synth`` (``proposal/synth.py``): the state is the image, and an update is one pass of example-based
   synthesis at the scale the timestep sets.
 """
@@ -125,13 +124,6 @@ class AttentionBackend(ProposalBackend):
     def features(self, state: torch.Tensor, timestep: int) -> AttentionFeatures:
         """Self-attention features of ``state`` at scheduler ``timestep`` (differentiable in ``state``)."""
 
-    def extra_energy(self, state: torch.Tensor, style_image: torch.Tensor, timestep: int) -> torch.Tensor | None:
-        """A backend's own energy term added to E_attn (differentiable in ``state``); None when it has none.
-
-        The SD1.5 backend has none; the patch backend adds a patch sliced-Wasserstein term there.
-        """
-        return None
-
     def reference_features(self, image: torch.Tensor, timestep: int) -> AttentionFeatures:
         """Features of a fixed reference image (style or content), without gradients."""
         with torch.no_grad():
@@ -157,9 +149,6 @@ def optimize_proposal(
         state.requires_grad_(True)
         optimizer = torch.optim.Adam([state], lr=backend.learning_rate)
         energy = attention_energy(backend.features(state, timestep), style, content, terms)
-        extra = backend.extra_energy(state, style_image, timestep)
-        if extra is not None:
-            energy = energy + extra
         optimizer.zero_grad(set_to_none=True)
         energy.backward()
         if not torch.isfinite(state.grad).all():
