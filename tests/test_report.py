@@ -227,7 +227,8 @@ def test_report_command_writes_four_sections_and_plots(tmp_path):
     ):
         assert row in text
     assert "a single Gaussian covers the view" in text
-    assert len(list((out / "logs").glob("*.jsonl"))) == 3  # "stages 2" is the shrunk preview preset: run once
+    assert len(list((out / "logs").glob("*.jsonl"))) == 4  # every run has its own settings
+    assert "novel views between them" in text
     data = json.loads((out / "report.json").read_text())
     assert [r["label"] for r in data["runs"]] == ["preview", "paper", "stages 1", "stages 2"]
     assert data["convergence"]["label"] == "preview" and data["convergence"]["steps"]  # most steps, first
