@@ -142,6 +142,7 @@ def test_geometry_on_cpu_says_what_it_costs(files, tmp_path, capsys):
 def test_stylize_as_a_module_with_ablation_switches_and_quiet(files, tmp_path):
     out = tmp_path / "switches.ply"
     args = _stylize_args(files, out, "--no-feedback", "--no-pcgrad", "--schedule", "triangle", "--views", "0,2")
+    args += ["--early-stop", "0.5", "--stages", "2"]
     args += ["--sh-rest", "keep", "--log", str(tmp_path / "custom.jsonl"), "--quiet"]
     done = subprocess.run(
         [sys.executable, "-m", "dresg_addon", *args], cwd=REPO, capture_output=True, text=True, timeout=300
@@ -152,7 +153,7 @@ def test_stylize_as_a_module_with_ablation_switches_and_quiet(files, tmp_path):
     result = read_scene(out)
     np.testing.assert_array_equal(result.sh_rest, _scene().sh_rest)
     log = [json.loads(line) for line in (tmp_path / "custom.jsonl").read_text().splitlines()]
-    assert log[0]["views"] == 2
+    assert log[0]["views"] == 2 and all("style_distance" in e for e in log if e["stage"] != "post")
 
 
 def test_select_views_prints_a_table_and_json(files, capsys):
@@ -189,6 +190,8 @@ def test_select_views_prints_a_table_and_json(files, capsys):
         ({"--proposal": "sd15"}, "needs a local model path"),
         ({"--proposal": "sd15", "--model": "x", "--proposal-size": "36x28"}, "multiple of 8"),
         ({"--background": "2,0,0"}, "--background"),
+        ({"--early-stop": "1.5"}, "early_stop must be in [0, 1)"),
+        ({"--no-style-keys": None}, "synth backend has none"),
     ],
 )
 def test_stylize_errors_are_one_line_with_exit_code_2(files, tmp_path, capsys, change, message):
@@ -196,7 +199,9 @@ def test_stylize_errors_are_one_line_with_exit_code_2(files, tmp_path, capsys, c
     args = _stylize_args(files, out)
     for flag, value in change.items():
         value = str(tmp_path / value) if flag == "--style" else value
-        if flag in args:
+        if value is None:  # a switch
+            args.append(flag)
+        elif flag in args:
             args[args.index(flag) + 1] = value
         else:
             args += [flag, value]

@@ -315,11 +315,11 @@ def test_build_library_holds_every_patch_and_its_mirror():
     size = 5
     library = build_library(style, size, SynthSettings(library_size=1000), torch.Generator().manual_seed(0))
     originals, mirrored = _all_patches(style, size), _all_patches(style.flip(-1), size)
-    assert library.patches.shape == (2 * originals.shape[0], 3 * size * size) <= (1000, 3 * size * size)
-    assert bool(_rows_in(originals, library.patches).all())
-    assert bool(_rows_in(mirrored, library.patches).all())
-    torch.testing.assert_close(library.projected, (library.patches - library.mean) @ library.basis)
-    torch.testing.assert_close(library.project(library.patches), library.projected)
+    assert library.patches().shape == (2 * originals.shape[0], 3 * size * size) <= (1000, 3 * size * size)
+    assert bool(_rows_in(originals, library.patches()).all())
+    assert bool(_rows_in(mirrored, library.patches()).all())
+    torch.testing.assert_close(library.projected, (library.patches() - library.mean) @ library.basis)
+    torch.testing.assert_close(library.project(library.patches()), library.projected)
 
 
 @pytest.mark.parametrize("library_size", [10, 11, 50, 51])
@@ -328,23 +328,23 @@ def test_build_library_subset_is_capped_seeded_and_has_mirrored_patches(library_
     size = 5
     settings = SynthSettings(library_size=library_size)
     library = build_library(style, size, settings, torch.Generator().manual_seed(0))
-    assert 0 < library.patches.shape[0] <= library_size
+    assert 0 < library.patches().shape[0] <= library_size
     originals, mirrored = _all_patches(style, size), _all_patches(style.flip(-1), size)
-    from_style, from_mirror = _rows_in(library.patches, originals), _rows_in(library.patches, mirrored)
+    from_style, from_mirror = _rows_in(library.patches(), originals), _rows_in(library.patches(), mirrored)
     assert bool((from_style | from_mirror).all())  # every row is a real patch
     assert bool(from_mirror.any()) and bool(from_style.any())
     again = build_library(style, size, settings, torch.Generator().manual_seed(0))
-    assert torch.equal(library.patches, again.patches) and torch.equal(library.projected, again.projected)
+    assert torch.equal(library.patches(), again.patches()) and torch.equal(library.projected, again.projected)
     other = build_library(style, size, settings, torch.Generator().manual_seed(1))
-    assert not torch.equal(library.patches, other.patches)
+    assert not torch.equal(library.patches(), other.patches())
 
 
 def test_build_library_on_a_style_the_size_of_the_patch():
     style = torch.rand(3, 5, 5, generator=torch.Generator().manual_seed(10), dtype=F64)
     library = build_library(style, 5, SynthSettings(), torch.Generator().manual_seed(0))
-    assert library.patches.shape == (2, 75)
-    assert torch.equal(library.patches[0], style.reshape(-1))
-    assert torch.equal(library.patches[1], style.flip(-1).reshape(-1))
+    assert library.patches().shape == (2, 75)
+    assert torch.equal(library.patches()[0], style.reshape(-1))
+    assert torch.equal(library.patches()[1], style.flip(-1).reshape(-1))
     assert bool(torch.isfinite(library.projected).all())
 
 

@@ -18,10 +18,10 @@ HELP = "Stylize a 3DGS scene after a style image (DReSG) and write the stylized 
 # Options that map one-to-one onto StylizeConfig fields: (flag, field, type, help).
 KNOBS = (
     ("--stages", "stages", int, "feedback stages N/S"),
-    ("--updates", "updates_per_stage", int, "latent updates per stage S"),
+    ("--updates", "updates_per_stage", int, "proposal updates per stage S (latent steps or synthesis passes)"),
     ("--fit-steps", "fit_steps", int, "fitting steps per stage M"),
     ("--post-steps", "post_steps", int, "fitting steps after the final colour transfer (0: no post stage)"),
-    ("--content-weight", "content_weight", float, "w_c, weight of the content-query energy"),
+    ("--content-weight", "content_weight", float, "w_c: how much of the scene's structure the proposals keep"),
     ("--latent-lr", "latent_lr", float, "Adam learning rate of the latent updates"),
     ("--color-lr", "color_lr", float, "Adam learning rate of the colours"),
     ("--geometry-lr", "geometry_lr", float, "Adam learning rate of the geometry offsets (means: x scene extent)"),
@@ -30,6 +30,13 @@ KNOBS = (
     ("--render-scale", "render_scale", float, "render resolution relative to the cameras' own"),
     ("--near", "near", float, "near plane of the rasterizer"),
     ("--seed", "seed", int, "random seed (runs are deterministic for a seed)"),
+    (
+        "--early-stop",
+        "early_stop",
+        float,
+        "leave out the remaining stages once two stages improve the style distance by less than this fraction "
+        "(0: run every stage)",
+    ),
 )
 SWITCHES = (
     ("--no-feedback", "feedback", "ablation: keep optimising the first latent instead of re-encoding the render"),
