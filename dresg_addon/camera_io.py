@@ -29,8 +29,9 @@ import numpy as np
 
 from .camera import Camera
 from .errors import CameraError, ConfigError, with_path
-from .fileutil import atomic_write_bytes
+from .fileutil import atomic_write_bytes, irregular_file_problem
 
+MAX_IMAGE_SIDE = 16384  # pixels; a camera wider or taller than this is refused on read (a 16k render is ~3 GB)
 ROTATION_TOLERANCE = 1e-3  # max |R^T R - I| accepted from files (rounded decimals), then projected
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".webp")
 
@@ -78,12 +79,22 @@ def _finite(values, where: str) -> np.ndarray:
 def _image_size(width, height, where: str) -> tuple[int, int]:
     size = []
     for label, value in (("width", width), ("height", height)):
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        if isinstance(value, bool) or not isinstance(value, int | float):
             raise CameraError(f"{where}: {label} {value!r} is not a number")
-        if value != int(value) or value < 1:
-            raise CameraError(f"{where}: {label} {value!r} must be a positive whole number")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise CameraError(f"{where}: {label} {value!r} is not a number")
+        if value < 1 or value != int(value):
+            raise CameraError(f"{where}: {label} {_short(value)} must be a positive whole number")
+        if value > MAX_IMAGE_SIDE:
+            raise CameraError(f"{where}: {label} {_short(value)} is larger than the {MAX_IMAGE_SIDE} pixels supported")
         size.append(int(value))
     return size[0], size[1]
+
+
+def _short(value) -> str:
+    """A number for a message: huge integers as their digit count (their repr can be thousands of characters)."""
+    text = repr(value)
+    return text if len(text) <= 24 else f"of {len(text)} digits"
 
 
 def _camera(where: str, width, height, fx, fy, cx, cy, w2c, name: str) -> Camera:
@@ -186,6 +197,7 @@ _JSON_KEYS = ("width", "height", "position", "rotation", "fx", "fy")
 def read_cameras_json(path: str | os.PathLike) -> list[Camera]:
     """Read a graphdeco ``cameras.json``; the principal point is the image centre unless ``cx``/``cy`` are present."""
     path = Path(path)
+    _check_regular(path)
     try:
         entries = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -194,6 +206,10 @@ def read_cameras_json(path: str | os.PathLike) -> list[Camera]:
         raise CameraError(with_path(path, f"cannot read: {error}")) from None
     except json.JSONDecodeError as error:
         raise CameraError(with_path(path, f"malformed JSON: {error}")) from None
+    except ValueError as error:  # an integer of thousands of digits: Python's int conversion limit
+        raise CameraError(with_path(path, f"malformed JSON: {str(error).splitlines()[0]}")) from None
+    except RecursionError:
+        raise CameraError(with_path(path, "malformed JSON: arrays or objects nested too deeply")) from None
     if not isinstance(entries, list):
         raise CameraError(with_path(path, f"expected a list of cameras, found {type(entries).__name__}"))
     if not entries:
@@ -212,7 +228,7 @@ def read_cameras_json(path: str | os.PathLike) -> list[Camera]:
             fx, fy = float(entry["fx"]), float(entry["fy"])
             cx = float(entry.get("cx", entry["width"] / 2.0))
             cy = float(entry.get("cy", entry["height"] / 2.0))
-        except (TypeError, ValueError) as error:
+        except (TypeError, ValueError, OverflowError) as error:
             raise CameraError(f"{where}: malformed values ({error})") from None
         if position.shape != (3,):
             raise CameraError(f"{where}: position has shape {position.shape}, expected (3,)")
@@ -412,7 +428,14 @@ def _read_colmap_images_txt(path: Path) -> list[tuple]:
     return images
 
 
+def _check_regular(path: Path) -> None:
+    problem = irregular_file_problem(path)
+    if problem:
+        raise CameraError(with_path(path, problem))
+
+
 def _read_text(path: Path) -> str:
+    _check_regular(path)
     try:
         return path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as error:
@@ -424,6 +447,7 @@ class _Reader:
 
     def __init__(self, path: Path):
         self.path = path
+        _check_regular(path)
         try:
             self.data = path.read_bytes()
         except OSError as error:
@@ -507,6 +531,7 @@ def read_llff(
     """
     _check_resize(factor, width, height)
     path = Path(path)
+    _check_regular(path)
     try:
         array = np.load(path, allow_pickle=False)
     except FileNotFoundError:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ImageError, with_path
-from .fileutil import atomic_write_with
+from .fileutil import atomic_write_with, irregular_file_problem
 
 # extension -> (OpenImageIO format name, allowed bit depths, default bit depth); 32 means float32
 _WRITE_FORMATS = {
@@ -67,6 +67,9 @@ def _read(path, orient: bool) -> tuple[np.ndarray, int, bool]:
         raise ImageError(with_path(path, "no such file"))
     if path.is_dir():
         raise ImageError(with_path(path, "is a folder, not an image file"))
+    problem = irregular_file_problem(path)
+    if problem:
+        raise ImageError(with_path(path, problem))
     if path.stat().st_size == 0:
         raise ImageError(with_path(path, "empty file (0 bytes)"))
     config = oiio.ImageSpec()
@@ -233,6 +236,17 @@ def resize_image(image, width: int, height: int):
     chw = torch.from_numpy(np.ascontiguousarray(array if array.ndim == 3 else array[..., None])).permute(2, 0, 1)
     resized = resize_image(chw, width, height).permute(1, 2, 0).contiguous().numpy()
     return resized if array.ndim == 3 else resized[..., 0]
+
+
+def letterbox(image: np.ndarray, width: int, height: int, fill: float = 1.0) -> np.ndarray:  # [H, W, C]
+    """``image`` scaled to fit ``width`` x ``height`` with its aspect kept, centred on a ``fill`` background."""
+    h, w = image.shape[:2]
+    scale = min(height / h, width / w)
+    small = resize_image(image, max(1, min(width, round(w * scale))), max(1, min(height, round(h * scale))))
+    out = np.full((height, width, image.shape[2]), fill, dtype=np.float32)
+    top, left = (height - small.shape[0]) // 2, (width - small.shape[1]) // 2
+    out[top : top + small.shape[0], left : left + small.shape[1]] = small
+    return out
 
 
 def to_tensor(image: np.ndarray):  # [H, W, C] or [H, W] -> torch [C, H, W] float32

@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from dresg_addon.demo import demo_style_image  # noqa: E402
-from dresg_addon.imageio import read_rgb, resize_image, write_image  # noqa: E402
+from dresg_addon.imageio import letterbox, read_rgb, write_image  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 
@@ -37,13 +37,7 @@ def crop(image: np.ndarray, fraction: float) -> np.ndarray:  # [H, W, 3] -> [H, 
 
 def style_tile(name: str, height: int, width: int) -> np.ndarray:
     style = demo_style_image() if name == "demo" else read_rgb(DATA / "styles" / f"{name}.jpg")
-    h, w = style.shape[:2]
-    scale = min(height / h, width / w)
-    small = resize_image(style, max(1, round(w * scale)), max(1, round(h * scale)))
-    tile = np.ones((height, width, 3), np.float32)
-    top, left = (height - small.shape[0]) // 2, (width - small.shape[1]) // 2
-    tile[top : top + small.shape[0], left : left + small.shape[1]] = small
-    return tile
+    return letterbox(style, width, height)
 
 
 def main() -> int:

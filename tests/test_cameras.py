@@ -685,6 +685,13 @@ def test_orbit_layout_and_options():
     assert all(np.isfinite(c.world_to_camera).all() for c in single)
     top = orbit_cameras(scene, 2, elevation_deg=90.0)
     assert all(np.isfinite(c.world_to_camera).all() for c in top)
+    # Half a step round: the novel views between a ring's cameras, at the same distance.
+    ring = orbit_cameras(scene, 8)
+    between = orbit_cameras(scene, 8, azimuth_offset_deg=22.5)
+    finer = orbit_cameras(scene, 16)
+    for k in range(8):
+        np.testing.assert_allclose(between[k].world_to_camera, finer[2 * k + 1].world_to_camera, atol=1e-9)
+        assert not np.allclose(between[k].center, ring[k].center)
 
 
 def test_orbit_errors():
@@ -699,3 +706,5 @@ def test_orbit_errors():
         orbit_cameras(means, 2, fov_deg=180.0)
     with pytest.raises(ConfigError):
         orbit_cameras(means, 2, up=(0.0, 0.0, 0.0))
+    with pytest.raises(ConfigError, match="azimuth"):
+        orbit_cameras(means, 2, azimuth_offset_deg=float("nan"))

@@ -224,7 +224,9 @@ def test_demo_command_writes_its_assets_and_before_after_images(tmp_path, monkey
     import dresg_addon.demo as demo
 
     real_cameras = demo.demo_cameras
-    monkeypatch.setattr(demo, "demo_cameras", lambda scene, n: real_cameras(scene, n=n, width=64, height=48))
+    monkeypatch.setattr(
+        demo, "demo_cameras", lambda scene, n, **kw: real_cameras(scene, n=n, width=64, height=48, **kw)
+    )
     tiny = StylizeConfig(
         stages=1,
         updates_per_stage=2,
@@ -246,4 +248,6 @@ def test_demo_command_writes_its_assets_and_before_after_images(tmp_path, monkey
     before = read_image(out / "views" / "orbit_000_before.png")
     after = read_image(out / "views" / "orbit_000_after.png")
     assert before.shape == after.shape == (48, 64, 3) and np.abs(before - after).mean() > 0.01
-    assert read_image(out / "before_after.png").shape == (2 * 48, 2 * 64, 3)
+    grid = read_image(out / "before_after.png")
+    assert grid.shape == (2 * 48, 3 * 64, 3)  # two novel views: before | after | style
+    assert np.abs(grid[:, :64] - grid[:, 64:128]).mean() > 0.01

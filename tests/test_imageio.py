@@ -311,3 +311,16 @@ def test_import_is_light():
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "False"
+
+
+def test_letterbox_keeps_the_aspect_and_centres_the_image():
+    from dresg_addon.imageio import letterbox
+
+    wide = np.zeros((10, 40, 3), np.float32)
+    out = letterbox(wide, 20, 20)
+    assert out.shape == (20, 20, 3)
+    assert np.all(out[:7] == 1.0) and np.all(out[-8:] == 1.0)  # white bands above and below
+    assert np.allclose(out[8:12], 0.0)  # the image, 5 rows high, in the middle
+    tall = letterbox(np.zeros((40, 10, 3), np.float32), 20, 20, fill=0.5)
+    assert np.all(tall[:, :7] == 0.5) and np.allclose(tall[:, 8:12], 0.0)
+    assert letterbox(np.zeros((1, 1, 3), np.float32), 3, 2).shape == (2, 3, 3)

@@ -585,6 +585,39 @@ def test_failed_write_leaves_the_old_file(tmp_path, monkeypatch, good_ply):
     assert os.listdir(good_ply.parent) == ["good.ply"]  # no temporary file left behind
 
 
+def test_written_files_get_the_umask_permissions_and_keep_a_replaced_files_mode(tmp_path, good_ply):
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        write_scene(read_scene(good_ply), tmp_path / "new.ply")
+        assert stat.S_IMODE(os.stat(tmp_path / "new.ply").st_mode) == 0o644  # as open() would create it
+        os.chmod(tmp_path / "new.ply", 0o640)
+        write_scene(read_scene(good_ply), tmp_path / "new.ply")
+        assert stat.S_IMODE(os.stat(tmp_path / "new.ply").st_mode) == 0o640  # a replaced file keeps its mode
+    finally:
+        os.umask(old)
+
+
+def test_a_killed_writers_temporary_file_is_removed_by_the_next_write(tmp_path, good_ply):
+    import subprocess
+    import sys
+
+    from dresg_addon.fileutil import TEMP_MARK
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead = int(gone.stdout)  # a process that has exited
+    stale = tmp_path / f".out.ply.{dead}.abcd1234{TEMP_MARK}.ply"
+    stale.write_bytes(b"half a scene")
+    alive = tmp_path / f".out.ply.{os.getppid()}.abcd1234{TEMP_MARK}.ply"  # another live writer's file
+    alive.write_bytes(b"in progress")
+    foreign = tmp_path / ".out.ply.notes"
+    foreign.write_bytes(b"not ours")
+    write_scene(read_scene(good_ply), tmp_path / "out.ply")
+    assert not stale.exists() and alive.exists() and foreign.exists()
+    assert len(read_scene(tmp_path / "out.ply")) == 20
+
+
 def test_refuses_non_finite_scenes_and_unknown_extensions(tmp_path, good_ply):
     before = digest(good_ply)
     scene = random_scene(n=5)

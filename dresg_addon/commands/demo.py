@@ -1,7 +1,8 @@
 """``python -m dresg_addon demo --out DIR``: the embedded default, end to end, with nothing downloaded.
 
 Makes the demo scene, cameras and style image, stylizes the scene, and writes the stylized PLY, the
-per-stage log, and before/after images of every camera.
+per-stage log, before/after images of every camera, and ``before_after.png``: before | after | style from
+four novel views (between the cameras the scene was stylized from).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ def run(args) -> int:
     from ..camera_io import write_cameras_json
     from ..config import preset
     from ..demo import demo_cameras, demo_scene, demo_style_image
-    from ..imageio import write_image
+    from ..imageio import letterbox, write_image
     from ..io import write_scene
     from ..pipeline import stylize
     from ..raster import RasterSettings, render_scene
@@ -62,13 +63,16 @@ def run(args) -> int:
     )
     write_scene(result.scene, out / "stylized.ply")
     settings = RasterSettings(background=config.background)
-    rows = []
     for camera in cameras:
+        write_image(out / "views" / f"{camera.name}_before.png", render_scene(scene, camera, settings).rgb.numpy())
+        write_image(
+            out / "views" / f"{camera.name}_after.png", render_scene(result.scene, camera, settings).rgb.numpy()
+        )
+    rows = []
+    for camera in demo_cameras(scene, n=args.views, azimuth_offset_deg=180.0 / args.views)[:4]:
         before = render_scene(scene, camera, settings).rgb.numpy()
         after = render_scene(result.scene, camera, settings).rgb.numpy()
-        write_image(out / "views" / f"{camera.name}_before.png", before)
-        write_image(out / "views" / f"{camera.name}_after.png", after)
-        rows.append(np.concatenate([before, after], 1))
-    write_image(out / "before_after.png", np.concatenate(rows[:4], 0))
+        rows.append(np.concatenate([before, after, letterbox(style, camera.width, camera.height)], 1))
+    write_image(out / "before_after.png", np.concatenate(rows, 0))
     print(f"wrote {out / 'stylized.ply'} and {out / 'before_after.png'} in {time.perf_counter() - started:.0f} s")
     return 0

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import SceneFormatError, with_path
-from ..fileutil import atomic_write_with
+from ..fileutil import atomic_write_with, irregular_file_problem
 from ..scene import GaussianScene
 from .compressed_ply import encode_compressed, is_compressed, read_compressed
 from .ply import encode_graphdeco, read_graphdeco
@@ -114,6 +114,9 @@ def read_scene_detailed(path: str | os.PathLike, drop_invalid: bool = False) -> 
 
 
 def _read_bytes(path) -> bytes:
+    problem = irregular_file_problem(path)
+    if problem:
+        raise SceneFormatError(with_path(path, problem))
     try:
         return Path(path).read_bytes()
     except FileNotFoundError:

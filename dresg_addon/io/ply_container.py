@@ -46,6 +46,7 @@ PLY_TYPE_NAMES = {
 
 FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 MAX_HEADER_BYTES = 1 << 20
+MAX_COUNT_DIGITS = 15  # an element count beyond 10^15 records cannot be in a file
 
 
 @dataclass
@@ -98,7 +99,8 @@ def parse_header(path, data: bytes) -> PlyHeader:
             continue
 
         def bad(problem: str, number=number, raw=raw) -> SceneFormatError:
-            return SceneFormatError(with_path(path, f"bad PLY header line {number} ({raw.strip()!r}): {problem}"))
+            line = raw.strip() if len(raw.strip()) <= 80 else raw.strip()[:77] + "..."
+            return SceneFormatError(with_path(path, f"bad PLY header line {number} ({line!r}): {problem}"))
 
         keyword = words[0]
         if keyword == "format":
@@ -108,6 +110,10 @@ def parse_header(path, data: bytes) -> PlyHeader:
         elif keyword == "element":
             if len(words) != 3 or not words[2].isdigit():
                 raise bad("expected 'element NAME COUNT'")
+            if len(words[2]) > MAX_COUNT_DIGITS:
+                raise bad(f"element count of {len(words[2])} digits is beyond any file")
+            if any(e.name == words[1] for e in elements):
+                raise bad(f"duplicate element {words[1]!r}")
             elements.append(PlyElement(words[1], int(words[2]), []))
         elif keyword == "property":
             if not elements:

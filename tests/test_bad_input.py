@@ -1,0 +1,152 @@
+"""Named regressions from the bad-input fuzzer (issue 11): each case once crashed with a traceback, blocked
+forever or read gigabytes; now it is a one-line error of the project's own type, through the CLI too."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from test_cameras import colmap_images, write_colmap_binary  # noqa: E402
+from test_io import graphdeco_columns, random_scene, write_test_ply  # noqa: E402
+
+from dresg_addon import cli  # noqa: E402
+from dresg_addon.camera_io import MAX_IMAGE_SIDE, load_cameras, read_cameras_json  # noqa: E402
+from dresg_addon.errors import CameraError, ImageError, SceneFormatError  # noqa: E402
+from dresg_addon.imageio import read_rgb  # noqa: E402
+from dresg_addon.io import read_scene  # noqa: E402
+
+
+def _one_line_error(capsys, args) -> str:
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    return err[0]
+
+
+# --- numbers Python cannot hold -----------------------------------------------------------------------
+
+
+def test_a_ply_element_count_of_thousands_of_digits_is_a_clean_error(tmp_path, capsys):
+    good = write_test_ply(tmp_path / "good.ply", graphdeco_columns(random_scene(n=4, degree=0)))
+    data = good.read_bytes().replace(b"element vertex 4", b"element vertex " + b"9" * 5000, 1)
+    (tmp_path / "huge.ply").write_bytes(data)
+    with pytest.raises(SceneFormatError, match="element count of 5000 digits") as error:
+        read_scene(tmp_path / "huge.ply")
+    assert len(str(error.value)) < 300  # the line is quoted shortened, not 5000 digits long
+    assert "huge.ply" in _one_line_error(capsys, ["info", str(tmp_path / "huge.ply")])
+
+
+def _camera_entry(**changes) -> dict:
+    entry = {
+        "id": 0,
+        "img_name": "a",
+        "width": 64,
+        "height": 48,
+        "position": [0.0, 0.0, -2.0],
+        "rotation": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        "fx": 50.0,
+        "fy": 50.0,
+    }
+    return {**entry, **changes}
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ('[{"width": ' + "9" * 4301 + "}]", "malformed JSON"),  # Python's int conversion limit
+        ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    ],
+)
+def test_json_python_cannot_parse_is_a_clean_error(tmp_path, text, message):
+    path = tmp_path / "cameras.json"
+    path.write_text(text)
+    with pytest.raises(CameraError, match=message):
+        read_cameras_json(path)
+
+
+@pytest.mark.parametrize("key", ["width", "height", "cx", "cy", "fx", "fy", "position", "rotation"])
+def test_a_400_digit_integer_in_a_camera_is_a_clean_error(tmp_path, key):
+    huge = 10**400
+    value = [huge, 0, 0] if key == "position" else [[huge, 0, 0], [0, 1, 0], [0, 0, 1]] if key == "rotation" else huge
+    path = tmp_path / "cameras.json"
+    path.write_text(json.dumps([_camera_entry(**{key: value})]))
+    with pytest.raises(CameraError, match="camera 0"):
+        read_cameras_json(path)
+
+
+# --- a PLY with two vertex elements -------------------------------------------------------------------
+
+
+def test_duplicate_vertex_elements_are_refused(tmp_path):
+    good = write_test_ply(tmp_path / "good.ply", graphdeco_columns(random_scene(n=4, degree=0)))
+    header, body = good.read_bytes().split(b"end_header\n", 1)
+    lines = header.split(b"\n")
+    vertex = [i for i, line in enumerate(lines) if line.startswith(b"element vertex")][0]
+    block = lines[vertex : len(lines) - 1]  # the vertex element and its properties
+    doubled = b"\n".join(lines[:-1] + [b"element vertex 2", *block[1:], b"end_header"]) + b"\n"
+    (tmp_path / "twice.ply").write_bytes(doubled + body + body[: len(body) // 2])
+    with pytest.raises(SceneFormatError, match="duplicate element 'vertex'"):
+        read_scene(tmp_path / "twice.ply")
+
+
+# --- absurd camera sizes --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("width", [1e300, 10**12, MAX_IMAGE_SIDE + 1, 20000])
+def test_absurd_camera_sizes_are_refused_on_read(tmp_path, width):
+    path = tmp_path / "cameras.json"
+    path.write_text(json.dumps([_camera_entry(width=width)]))
+    with pytest.raises(CameraError, match="larger than the 16384 pixels supported"):
+        read_cameras_json(path)
+
+
+def test_a_colmap_binary_width_of_2_64_minus_1_is_a_clean_error(tmp_path, capsys):
+    cameras = [(1, "PINHOLE", 2**64 - 1, 48, (50.0, 50.0, 32.0, 24.0))]
+    images = [image[:3] + (1,) + image[4:] for image in colmap_images(np.random.default_rng(0), count=2)]
+    write_colmap_binary(tmp_path / "model", images, cameras)
+    with pytest.raises(CameraError, match="larger than the 16384 pixels supported"):
+        load_cameras(tmp_path / "model")
+
+
+# --- paths that are not regular files -------------------------------------------------------------------
+
+
+@pytest.fixture
+def fifo(tmp_path):
+    def make(name: str) -> Path:
+        path = tmp_path / name
+        os.mkfifo(path)
+        return path
+
+    if not hasattr(os, "mkfifo"):
+        pytest.skip("no FIFOs on this platform")
+    return make
+
+
+def test_a_fifo_is_refused_instead_of_blocking(fifo, capsys):
+    with pytest.raises(SceneFormatError, match="is a FIFO, not a regular file"):
+        read_scene(fifo("scene.ply"))
+    with pytest.raises(CameraError, match="is a FIFO"):
+        read_cameras_json(fifo("cameras.json"))
+    with pytest.raises(ImageError, match="is a FIFO"):
+        read_rgb(fifo("style.png"))
+    assert "is a FIFO" in _one_line_error(capsys, ["info", str(fifo("other.ply"))])
+
+
+def test_a_link_to_a_device_is_refused_instead_of_read_forever(tmp_path):
+    if not os.path.exists("/dev/zero"):
+        pytest.skip("no /dev/zero")
+    link = tmp_path / "endless.splat"
+    link.symlink_to("/dev/zero")
+    with pytest.raises(SceneFormatError, match="is a device, not a regular file"):
+        read_scene(link)
+    (tmp_path / "poses_bounds.npy").symlink_to("/dev/zero")
+    with pytest.raises(CameraError, match="is a device"):
+        load_cameras(tmp_path / "poses_bounds.npy")
