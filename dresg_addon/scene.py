@@ -119,6 +119,11 @@ class GaussianScene:
         bad |= ~np.isfinite(self.sh_dc).all(1)
         if self.sh_rest is not None:
             bad |= ~np.isfinite(self.sh_rest).all((1, 2))
+        if self.normals is not None:
+            bad |= ~np.isfinite(self.normals).all(1)
+        for values in self.extras.values():  # every float property a file carries, written back as read
+            if np.issubdtype(values.dtype, np.floating):
+                bad |= ~np.isfinite(values)
         return bad
 
     def bounds(self, quantile: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

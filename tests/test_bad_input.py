@@ -150,3 +150,44 @@ def test_a_link_to_a_device_is_refused_instead_of_read_forever(tmp_path):
     (tmp_path / "poses_bounds.npy").symlink_to("/dev/zero")
     with pytest.raises(CameraError, match="is a device"):
         load_cameras(tmp_path / "poses_bounds.npy")
+
+
+# --- non-finite values in any property, and colours beyond any colour -----------------------------------
+
+
+def test_a_nan_normal_or_extra_property_is_caught_on_read(tmp_path, capsys):
+    from dresg_addon.io import read_scene_detailed
+
+    scene = random_scene(n=6, degree=0, normals=True, extras={"confidence": np.ones(6, np.float32)})
+    columns = graphdeco_columns(scene)
+    columns["nx"][2] = np.nan
+    write_test_ply(tmp_path / "nan_normal.ply", columns)
+    with pytest.raises(SceneFormatError, match="1 of 6 splats have non-finite values"):
+        read_scene(tmp_path / "nan_normal.ply")
+    assert read_scene_detailed(tmp_path / "nan_normal.ply", drop_invalid=True).dropped == 1
+    columns = graphdeco_columns(scene)
+    columns["confidence"][4] = np.inf
+    write_test_ply(tmp_path / "inf_extra.ply", columns)
+    with pytest.raises(SceneFormatError, match="non-finite"):
+        read_scene(tmp_path / "inf_extra.ply")
+    before = (tmp_path / "nan_normal.ply").read_bytes()
+    assert "non-finite" in _one_line_error(
+        capsys, ["convert", str(tmp_path / "nan_normal.ply"), str(tmp_path / "o.ply")]
+    )
+    assert not (tmp_path / "o.ply").exists() and (tmp_path / "nan_normal.ply").read_bytes() == before
+
+
+def test_colours_far_outside_any_colour_are_clamped_on_read_with_a_note(tmp_path, capsys):
+    from dresg_addon.io import SH_LIMIT, ClampedColoursWarning, read_scene_detailed
+
+    columns = graphdeco_columns(random_scene(n=6, degree=1))
+    columns["f_dc_0"][1] = 1e30
+    columns["f_rest_2"][3] = -1e30
+    path = write_test_ply(tmp_path / "bright.ply", columns)
+    result = read_scene_detailed(path)
+    assert result.clamped == 2
+    assert np.abs(result.scene.sh_dc).max() <= SH_LIMIT and np.abs(result.scene.sh_rest).max() <= SH_LIMIT
+    with pytest.warns(ClampedColoursWarning, match="clamped the colour coefficients of 2 splats"):
+        read_scene(path)
+    assert cli.main(["info", str(path)]) == 0
+    assert capsys.readouterr().err.count("\n") <= 1

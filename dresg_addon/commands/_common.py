@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from ..errors import ConfigError
 
@@ -22,12 +23,15 @@ def add_scene_and_cameras(parser: argparse.ArgumentParser) -> None:
 def load_scene_and_cameras(args, default_orbit: int = 16):
     """(scene, cameras) from the shared options; orbit cameras when no camera file is given."""
     from ..camera_io import load_cameras, resize_cameras
-    from ..io import read_scene_detailed
+    from ..io import clamped_note, read_scene_detailed
     from ..orbit import orbit_cameras
 
     if (args.width is None) != (args.height is None):
         raise ConfigError("--width and --height go together")
-    scene = read_scene_detailed(args.scene, drop_invalid=args.drop_invalid).scene
+    result = read_scene_detailed(args.scene, drop_invalid=args.drop_invalid)
+    if result.clamped:
+        print(f"note: {clamped_note(result.clamped)}", file=sys.stderr)
+    scene = result.scene
     if args.cameras:
         cameras = load_cameras(args.cameras)
         if args.width:

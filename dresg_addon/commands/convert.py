@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..io import SceneFormat, output_format, read_scene_detailed, write_scene
+from ..io import SceneFormat, clamped_note, output_format, read_scene_detailed, write_scene
 from ..scene import GaussianScene
 
 NAME = "convert"
@@ -54,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
     result = read_scene_detailed(args.input, drop_invalid=args.drop_invalid)
     if result.dropped:
         print(f"note: dropped {result.dropped:,} splats with non-finite values", file=sys.stderr)
+    if result.clamped:
+        print(f"note: {clamped_note(result.clamped)}", file=sys.stderr)
     for note in lossy_notes(result.scene, fmt):
         print(f"note: {note}", file=sys.stderr)
     write_scene(result.scene, args.output)

@@ -14,8 +14,10 @@ from __future__ import annotations
 import enum
 import os
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+
+import numpy as np
 
 from ..errors import SceneFormatError, with_path
 from ..fileutil import atomic_write_with, irregular_file_problem
@@ -28,6 +30,7 @@ from .splat import encode_splat, read_splat
 __all__ = [
     "READABLE_EXTENSIONS",
     "WRITABLE_EXTENSIONS",
+    "ClampedColoursWarning",
     "InvalidSplatsWarning",
     "SceneFormat",
     "SceneReadResult",
@@ -53,12 +56,22 @@ class InvalidSplatsWarning(UserWarning):
     """Splats with non-finite values were dropped while reading (``drop_invalid=True``)."""
 
 
+class ClampedColoursWarning(UserWarning):
+    """Colour (SH) coefficients far outside any displayable range were clamped while reading."""
+
+
+# |SH coefficient| beyond this is no colour (the DC term's colour would be 0.5 +- 28): clamp on read,
+# so a corrupt splat cannot overflow the float32 fit loss of a whole stylization.
+SH_LIMIT = 100.0
+
+
 @dataclass
 class SceneReadResult:
     scene: GaussianScene
     format: SceneFormat
     dropped: int  # splats dropped for non-finite values (only with drop_invalid=True)
     file_size: int  # bytes
+    clamped: int = 0  # splats whose SH coefficients were clamped to +-SH_LIMIT
 
 
 def read_scene(path: str | os.PathLike, drop_invalid: bool = False) -> GaussianScene:
@@ -67,7 +80,13 @@ def read_scene(path: str | os.PathLike, drop_invalid: bool = False) -> GaussianS
     if result.dropped:
         message = with_path(path, f"dropped {result.dropped} splats with non-finite values (NaN or Inf)")
         warnings.warn(message, InvalidSplatsWarning, stacklevel=2)
+    if result.clamped:
+        warnings.warn(with_path(path, clamped_note(result.clamped)), ClampedColoursWarning, stacklevel=2)
     return result.scene
+
+
+def clamped_note(count: int) -> str:
+    return f"clamped the colour coefficients of {count} splats to +-{SH_LIMIT:g} (far outside any colour)"
 
 
 def read_scene_detailed(path: str | os.PathLike, drop_invalid: bool = False) -> SceneReadResult:
@@ -110,7 +129,20 @@ def read_scene_detailed(path: str | os.PathLike, drop_invalid: bool = False) -> 
         if dropped == len(scene):
             raise SceneFormatError(with_path(path, f"all {dropped} splats have non-finite values"))
         scene = scene.subset(~invalid)
-    return SceneReadResult(scene, fmt, dropped, len(data))
+    scene, clamped = _clamp_colours(scene)
+    return SceneReadResult(scene, fmt, dropped, len(data), clamped)
+
+
+def _clamp_colours(scene: GaussianScene) -> tuple[GaussianScene, int]:
+    """The scene with SH coefficients clamped to +-SH_LIMIT, and how many splats had some beyond it."""
+    extreme = (np.abs(scene.sh_dc) > SH_LIMIT).any(1)
+    if scene.sh_rest is not None:
+        extreme |= (np.abs(scene.sh_rest) > SH_LIMIT).any((1, 2))
+    count = int(extreme.sum())
+    if not count:
+        return scene, 0
+    rest = None if scene.sh_rest is None else np.clip(scene.sh_rest, -SH_LIMIT, SH_LIMIT)
+    return replace(scene, sh_dc=np.clip(scene.sh_dc, -SH_LIMIT, SH_LIMIT), sh_rest=rest), count
 
 
 def _read_bytes(path) -> bytes:
