@@ -60,9 +60,9 @@ class ClampedColoursWarning(UserWarning):
     """Colour (SH) coefficients far outside any displayable range were clamped while reading."""
 
 
-# |SH coefficient| beyond this is no colour (the DC term's colour would be 0.5 +- 28): clamp on read,
-# so a corrupt splat cannot overflow the float32 fit loss of a whole stylization.
-SH_LIMIT = 100.0
+# |SH coefficient| beyond this is no colour (the DC term's colour would be 0.5 +- 2821; real ones stay
+# within a few units): clamp on read, so a corrupt splat cannot overflow the float32 fit loss of a run.
+SH_LIMIT = 1e4
 
 
 @dataclass
