@@ -58,8 +58,17 @@ def _reorient(image: np.ndarray, orientation: int) -> np.ndarray:  # [H, W, C]
     return np.ascontiguousarray(ops.get(orientation, ops[1])(image))
 
 
-def _read(path, orient: bool) -> tuple[np.ndarray, int, bool]:
-    """(pixels [H, W, C] float32, alpha channel index or -1, alpha is premultiplied)."""
+MAX_IMAGE_PIXELS = 1 << 28  # 16384^2: larger images are refused before anything is allocated
+STYLE_MAX_SIDE = 2048  # style images are read box-filtered down to at most this many pixels a side
+READ_BAND_VALUES = 1 << 24  # float values decoded at once while reading an image reduced
+
+
+def _read(path, orient: bool, max_side: int | None = None) -> tuple[np.ndarray, int, bool]:
+    """(pixels [H, W, C] float32, alpha channel index or -1, alpha is premultiplied).
+
+    Images over MAX_IMAGE_PIXELS are refused from their header; with ``max_side``, a larger image is
+    decoded in bands of rows and box-filtered by a whole factor on the fly, so memory stays bounded.
+    """
     import OpenImageIO as oiio
 
     path = Path(path)
@@ -81,7 +90,16 @@ def _read(path, orient: bool) -> tuple[np.ndarray, int, bool]:
         spec = inp.spec()
         if spec.width < 1 or spec.height < 1 or spec.nchannels < 1:
             raise ImageError(with_path(path, f"image has zero size ({spec.width}x{spec.height}x{spec.nchannels})"))
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if spec.width * spec.height > MAX_IMAGE_PIXELS:
+            raise ImageError(
+                with_path(
+                    path,
+                    f"the image declares {spec.width}x{spec.height} pixels, more than the "
+                    f"{MAX_IMAGE_PIXELS / 1e6:.0f} megapixels read",
+                )
+            )
+        factor = 1 if not max_side else -(-max(spec.width, spec.height) // max_side)
+        pixels = _read_pixels(inp, spec, factor)
         error = inp.geterror()
         if pixels is None or error:
             raise ImageError(with_path(path, f"truncated or corrupt image ({_one_line(error) or 'read failed'})"))
@@ -90,7 +108,6 @@ def _read(path, orient: bool) -> tuple[np.ndarray, int, bool]:
         premultiplied = spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 0
     finally:
         inp.close()
-    pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
     bad = int(np.count_nonzero(~np.isfinite(pixels)))
     if bad:
         raise ImageError(with_path(path, f"{bad} non-finite values (NaN or Inf) in the image"))
@@ -99,7 +116,27 @@ def _read(path, orient: bool) -> tuple[np.ndarray, int, bool]:
     return (_reorient(pixels, orientation) if orient else pixels), alpha, premultiplied
 
 
-def read_image(path: str | os.PathLike, *, orient: bool = True) -> np.ndarray:
+def _read_pixels(inp, spec, factor: int) -> np.ndarray | None:
+    """The whole image [H, W, C], or (factor > 1) its factor x factor box means, decoded in bands of rows."""
+    channels = spec.nchannels
+    if factor <= 1:
+        pixels = inp.read_image(0, 0, 0, channels, "float")
+        return None if pixels is None else np.asarray(pixels, np.float32).reshape(spec.height, spec.width, channels)
+    height, width = max(1, spec.height // factor), max(1, spec.width // factor)
+    fy, fx = min(factor, spec.height), min(factor, spec.width)  # a side shorter than the factor: one block
+    out = np.empty((height, width, channels), np.float32)
+    per_band = max(1, READ_BAND_VALUES // (spec.width * channels * fy))  # output rows per band
+    for r0 in range(0, height, per_band):
+        r1 = min(r0 + per_band, height)
+        band = inp.read_scanlines(0, 0, spec.y + r0 * fy, spec.y + r1 * fy, 0, 0, channels, "float")
+        if band is None:
+            return None
+        band = np.asarray(band, np.float32).reshape((r1 - r0) * fy, spec.width, channels)[:, : width * fx]
+        out[r0:r1] = band.reshape(r1 - r0, fy, width, fx, channels).mean((1, 3))
+    return out
+
+
+def read_image(path: str | os.PathLike, *, orient: bool = True, max_side: int | None = None) -> np.ndarray:
     """Read an image as [H, W, C] float32.
 
     Integer formats (8/16-bit PNG, JPEG, TIFF...) map to [0, 1] (``k / 255``, ``k / 65535``); float
@@ -107,28 +144,35 @@ def read_image(path: str | os.PathLike, *, orient: bool = True) -> np.ndarray:
     stored. ``orient`` applies the EXIF orientation tag (as viewers do); pass ``False`` for photos
     whose camera intrinsics refer to the stored pixel grid.
 
-    Raises ``ImageError`` naming the file for a missing, empty, unreadable or truncated file, and
-    for non-finite values.
+    ``max_side`` reads an image larger than that reduced by a whole factor (box filter), decoding it in
+    bands; images of more than MAX_IMAGE_PIXELS are refused from their header.
+
+    Raises ``ImageError`` naming the file for a missing, empty, unreadable, truncated or too large file,
+    and for non-finite values.
     """
-    return _read(path, orient)[0]
+    return _read(path, orient, max_side)[0]
 
 
 def read_rgb(
-    path: str | os.PathLike, background: tuple[float, float, float] = (1.0, 1.0, 1.0), *, orient: bool = True
+    path: str | os.PathLike,
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    *,
+    orient: bool = True,
+    max_side: int | None = None,
 ) -> np.ndarray:
     """Read an image as [H, W, 3] float32: grey is replicated, alpha composited over ``background``.
 
     The default background is white: transparent areas of a style picture or an object photo are
     meant to be seen on paper or a light page, and black would inject dark colours into the style
     statistics. Premultiplied alpha (EXR) composites as ``rgb + bg (1 - a)``, straight alpha as
-    ``rgb a + bg (1 - a)``.
+    ``rgb a + bg (1 - a)``. ``max_side`` as for :func:`read_image`.
     """
-    pixels, alpha_index, premultiplied = _read(path, orient)
+    pixels, alpha_index, premultiplied = _read(path, orient, max_side)
     channels = pixels.shape[2]
     colour_channels = [c for c in range(channels) if c != alpha_index][:3]
     rgb = pixels[..., colour_channels]
     if rgb.shape[2] < 3:  # grey (with or without alpha)
-        rgb = np.repeat(rgb[..., :1], 3, axis=2)
+        rgb = np.broadcast_to(rgb[..., :1], (*rgb.shape[:2], 3))
     if alpha_index < 0:
         return np.ascontiguousarray(rgb)
     alpha = np.clip(pixels[..., alpha_index : alpha_index + 1], 0.0, 1.0)

@@ -153,7 +153,7 @@ def _hint_camera(scene_path: Path, width: int, height: int) -> Camera | None:
 
 def load_inputs(options: ReportOptions) -> ReportInputs:
     """The scene, orbit cameras, rasterizer camera (twice the evaluation size) and style images."""
-    from .imageio import read_rgb
+    from .imageio import STYLE_MAX_SIDE, read_rgb
     from .orbit import orbit_cameras
 
     width, height, n = options.width, options.height, options.views
@@ -186,12 +186,14 @@ def load_inputs(options: ReportOptions) -> ReportInputs:
             or orbit_cameras(scene, 1, width=raster_size[0], height=raster_size[1])[0]
         )
         label = f"{scene_path.name} ({len(scene):,} Gaussians)"
-        default_styles = [(p.stem, read_rgb(p)) for p in shared_styles(1 if options.quick else 2)]
+        default_styles = [
+            (p.stem, read_rgb(p, max_side=STYLE_MAX_SIDE)) for p in shared_styles(1 if options.quick else 2)
+        ]
         if not default_styles:
             from .demo import demo_style_image
 
             default_styles = [("demo painting", demo_style_image(seed=options.seed))]
-    styles = [(Path(p).stem, read_rgb(p)) for p in options.styles] or default_styles
+    styles = [(Path(p).stem, read_rgb(p, max_side=STYLE_MAX_SIDE)) for p in options.styles] or default_styles
     return ReportInputs(scene, label, cameras, eval_cameras, raster_camera, styles)
 
 

@@ -35,12 +35,12 @@ def style_image(settings) -> tuple[np.ndarray, str]:
         if image.is_float:  # float buffers are scene-linear; the method works on display values
             pixels = splat_mesh.linear_to_srgb(pixels)
         return splat_mesh.image_from_pixels(pixels, width, height, channels), image.name
-    from ..dresg_addon.imageio import read_rgb
+    from ..dresg_addon.imageio import STYLE_MAX_SIDE, read_rgb
 
     if not settings.style_path:
         raise ImageError("no style image chosen")
     path = bpy.path.abspath(settings.style_path)
-    return read_rgb(path), os.path.basename(path)
+    return read_rgb(path, max_side=STYLE_MAX_SIDE), os.path.basename(path)
 
 
 def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[job.StylizeJob, str]:

@@ -324,3 +324,24 @@ def test_letterbox_keeps_the_aspect_and_centres_the_image():
     tall = letterbox(np.zeros((40, 10, 3), np.float32), 20, 20, fill=0.5)
     assert np.all(tall[:, :7] == 0.5) and np.allclose(tall[:, 8:12], 0.0)
     assert letterbox(np.zeros((1, 1, 3), np.float32), 3, 2).shape == (2, 3, 3)
+
+
+def test_a_large_image_reads_reduced_in_bands_and_a_huge_one_is_refused_from_its_header(tmp_path, monkeypatch):
+    import dresg_addon.imageio as imageio
+    from dresg_addon.imageio import read_image, read_rgb
+
+    rng = np.random.default_rng(0)
+    big = rng.uniform(0, 1, (300, 450, 3)).astype(np.float32)
+    write_image(tmp_path / "big.exr", big)
+    monkeypatch.setattr(imageio, "READ_BAND_VALUES", 4000)  # many small bands
+    small = read_image(tmp_path / "big.exr", max_side=100)  # factor 5: 60 x 90
+    assert small.shape == (60, 90, 3)
+    np.testing.assert_allclose(small, big.reshape(60, 5, 90, 5, 3).mean((1, 3)), atol=1e-6)
+    assert read_image(tmp_path / "big.exr", max_side=450).shape == big.shape  # small enough already
+    grey = rng.uniform(0, 1, (40, 7)).astype(np.float32)
+    write_image(tmp_path / "thin.exr", grey)
+    thin = read_rgb(tmp_path / "thin.exr", max_side=10)  # factor 4; the 7 columns give one block of 4
+    assert thin.shape == (10, 1, 3) and np.allclose(thin[..., 0], thin[..., 2])
+    monkeypatch.setattr(imageio, "MAX_IMAGE_PIXELS", 300 * 450 - 1)
+    with pytest.raises(ImageError, match="declares 450x300 pixels, more than"):
+        read_image(tmp_path / "big.exr")

@@ -165,7 +165,7 @@ def evaluate(args: argparse.Namespace) -> dict:
     """Everything the command measures, as a JSON-ready dict (no NaN: missing values are None)."""
     from .. import metrics
     from ..camera_io import load_cameras
-    from ..imageio import read_rgb, to_tensor
+    from ..imageio import STYLE_MAX_SIDE, read_rgb, to_tensor
     from ..orbit import orbit_cameras
     from ..raster import RasterSettings
 
@@ -184,7 +184,7 @@ def evaluate(args: argparse.Namespace) -> dict:
     cameras = None
     if args.cameras is not None:
         cameras = load_cameras(args.cameras, factor=factor, width=args.width, height=args.height)
-    style = to_tensor(read_rgb(args.style))
+    style = to_tensor(read_rgb(args.style, max_side=STYLE_MAX_SIDE))
     stylized = _read(args.stylized, args.drop_invalid, "stylized scene")
     base = _read(args.base, args.drop_invalid, "base scene")
     if cameras is None:

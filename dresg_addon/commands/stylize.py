@@ -127,13 +127,13 @@ def config_from_args(args):
 
 
 def run(args) -> int:
-    from ..imageio import read_rgb
+    from ..imageio import STYLE_MAX_SIDE, read_rgb
     from ..io import write_scene
     from ..pipeline import check_run_settings, stylize
 
     config = config_from_args(args)
     check_run_settings(config)
-    style = read_rgb(args.style)  # before the scene, so a bad style path fails at once
+    style = read_rgb(args.style, max_side=STYLE_MAX_SIDE)  # before the scene, so a bad style path fails at once
     scene, cameras = load_scene_and_cameras(args)
     views = None
     if args.views:
