@@ -15,6 +15,9 @@ OpenImageIO and torch are imported inside the functions, so importing the packag
 from __future__ import annotations
 
 import os
+import sys
+import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +41,32 @@ def _one_line(message: str) -> str:
     """OpenImageIO errors often span several (repeated) lines; keep each distinct line once."""
     lines = [line.strip() for line in message.splitlines() if line.strip()]
     return "; ".join(dict.fromkeys(lines))
+
+
+@contextmanager
+def _native_stderr():
+    """Capture what native libraries write to file descriptor 2 (a list, filled on exit; nothing is shown)."""
+    captured: list[str] = []
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr to redirect (e.g. an embedding without one)
+        yield captured
+        return
+    with tempfile.TemporaryFile() as sink:
+        sys.stderr.flush()
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield captured
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            captured.extend(sink.read().decode("utf-8", "replace").splitlines())
+
+
+def _drain(lines: list[str]) -> str:
+    """The first non-empty line a native library wrote (its own 'libpng error:' prefix kept)."""
+    return next((line.strip() for line in lines if line.strip()), "")
 
 
 def _reorient(image: np.ndarray, orientation: int) -> np.ndarray:  # [H, W, C]
@@ -83,9 +112,25 @@ def _read(path, orient: bool, max_side: int | None = None) -> tuple[np.ndarray, 
         raise ImageError(with_path(path, "empty file (0 bytes)"))
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # keep straight alpha as stored
+    with _native_stderr() as chatter:  # libpng / libjpeg print their own lines: they go into the error
+        try:
+            return _read_open(path, orient, max_side, oiio, config)
+        except _Unreadable as failure:
+            problem = failure
+    reason = _one_line(problem.reason) or _drain(chatter) or "read failed"
+    raise ImageError(with_path(path, f"{problem.what} ({reason})"))
+
+
+class _Unreadable(Exception):
+    def __init__(self, what: str, reason: str):
+        super().__init__(what)
+        self.what, self.reason = what, reason
+
+
+def _read_open(path: Path, orient: bool, max_side, oiio, config):
     inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
-        raise ImageError(with_path(path, f"not a readable image ({_one_line(oiio.geterror())})"))
+        raise _Unreadable("not a readable image", oiio.geterror())
     try:
         spec = inp.spec()
         if spec.width < 1 or spec.height < 1 or spec.nchannels < 1:
@@ -102,7 +147,7 @@ def _read(path, orient: bool, max_side: int | None = None) -> tuple[np.ndarray, 
         pixels = _read_pixels(inp, spec, factor)
         error = inp.geterror()
         if pixels is None or error:
-            raise ImageError(with_path(path, f"truncated or corrupt image ({_one_line(error) or 'read failed'})"))
+            raise _Unreadable("truncated or corrupt image", error)
         orientation = spec.get_int_attribute("Orientation", 1)
         alpha = spec.alpha_channel
         premultiplied = spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 0

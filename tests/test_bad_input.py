@@ -191,3 +191,38 @@ def test_colours_far_outside_any_colour_are_clamped_on_read_with_a_note(tmp_path
         read_scene(path)
     assert cli.main(["info", str(path)]) == 0
     assert capsys.readouterr().err.count("\n") <= 1
+
+
+# --- nothing but the one line on stderr -------------------------------------------------------------------
+
+
+def test_a_corrupt_png_is_one_line_with_libpngs_own_words_kept_off_stderr(tmp_path, capfd):
+    from dresg_addon.imageio import write_image
+
+    write_image(tmp_path / "good.png", np.random.default_rng(0).uniform(0, 1, (64, 64, 3)).astype(np.float32))
+    data = (tmp_path / "good.png").read_bytes()
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(data[:60] + bytes(200) + data[260:])  # a damaged first chunk
+    capfd.readouterr()
+    with pytest.raises(ImageError) as error:
+        read_rgb(broken)
+    out, err = capfd.readouterr()
+    assert err == "" and "\n" not in str(error.value) and "broken.png" in str(error.value)
+
+
+def test_reading_and_writing_corrupt_scenes_raises_no_numpy_warnings(tmp_path):
+    import warnings
+
+    from dresg_addon.io import write_scene
+
+    columns = graphdeco_columns(random_scene(n=8, degree=0))
+    columns["x"] = columns["x"].astype(np.float64)
+    columns["x"][3] = 1e300  # overflows float32 on read
+    path = write_test_ply(tmp_path / "overflow.ply", columns, types={"x": "double"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(SceneFormatError, match="non-finite"):
+            read_scene(path)
+        scene = random_scene(n=4, degree=0)
+        scene.log_scales[1] = 500.0  # exp overflows in the .splat encoder, which clamps it
+        write_scene(scene, tmp_path / "big.splat")

@@ -98,23 +98,8 @@ def read_scene_detailed(path: str | os.PathLike, drop_invalid: bool = False) -> 
     data = _read_bytes(path)
     if not data:
         raise SceneFormatError(with_path(path, "empty file"))
-    if is_ply(data):
-        header = parse_header(path, data)
-        if is_compressed(header):
-            fmt, scene = SceneFormat.COMPRESSED_PLY, read_compressed(path, data, header)
-        else:
-            fmt, scene = SceneFormat.GRAPHDECO_PLY, read_graphdeco(path, data, header)
-    elif Path(path).suffix.lower() == ".splat":
-        fmt, scene = SceneFormat.SPLAT, read_splat(path, data)
-    elif data[:2] == b"\x1f\x8b":
-        raise SceneFormatError(
-            with_path(path, "gzip data (e.g. Niantic .spz) is not supported; convert it to .ply first")
-        )
-    else:
-        raise SceneFormatError(
-            with_path(path, "unknown scene format: not a PLY file, and only files named .splat are read as .splat")
-        )
-
+    with np.errstate(all="ignore"):  # a corrupt file's overflows become non-finite values, refused below
+        fmt, scene = _decode(path, data)
     invalid = scene.invalid_mask()
     dropped = int(invalid.sum())
     if dropped:
@@ -143,6 +128,24 @@ def _clamp_colours(scene: GaussianScene) -> tuple[GaussianScene, int]:
         return scene, 0
     rest = None if scene.sh_rest is None else np.clip(scene.sh_rest, -SH_LIMIT, SH_LIMIT)
     return replace(scene, sh_dc=np.clip(scene.sh_dc, -SH_LIMIT, SH_LIMIT), sh_rest=rest), count
+
+
+def _decode(path, data: bytes) -> tuple[SceneFormat, GaussianScene]:
+    """The format and the scene of a file's bytes (format from the content, or the .splat extension)."""
+    if is_ply(data):
+        header = parse_header(path, data)
+        if is_compressed(header):
+            return SceneFormat.COMPRESSED_PLY, read_compressed(path, data, header)
+        return SceneFormat.GRAPHDECO_PLY, read_graphdeco(path, data, header)
+    if Path(path).suffix.lower() == ".splat":
+        return SceneFormat.SPLAT, read_splat(path, data)
+    if data[:2] == b"\x1f\x8b":
+        raise SceneFormatError(
+            with_path(path, "gzip data (e.g. Niantic .spz) is not supported; convert it to .ply first")
+        )
+    raise SceneFormatError(
+        with_path(path, "unknown scene format: not a PLY file, and only files named .splat are read as .splat")
+    )
 
 
 def _read_bytes(path) -> bytes:
@@ -185,12 +188,13 @@ def write_scene(scene: GaussianScene, path: str | os.PathLike) -> SceneFormat:
         raise SceneFormatError(with_path(path, f"refusing to write {invalid} splats with non-finite values"))
     if len(scene) == 0:
         raise SceneFormatError(with_path(path, "refusing to write a scene with no splats"))
-    if fmt is SceneFormat.GRAPHDECO_PLY:
-        parts = encode_graphdeco(scene, path)
-    elif fmt is SceneFormat.SPLAT:
-        parts = encode_splat(scene)
-    else:
-        parts = encode_compressed(scene)
+    with np.errstate(all="ignore"):  # out-of-range values are clipped by each encoder
+        if fmt is SceneFormat.GRAPHDECO_PLY:
+            parts = encode_graphdeco(scene, path)
+        elif fmt is SceneFormat.SPLAT:
+            parts = encode_splat(scene)
+        else:
+            parts = encode_compressed(scene)
     try:
         atomic_write_with(path, lambda tmp: _write_parts(tmp, parts))
     except OSError as error:
