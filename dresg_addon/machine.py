@@ -26,3 +26,15 @@ def usable_cores() -> int:
 def load_average(digits: int = 2) -> str:
     """'1-min, 5-min, 15-min' load averages, or 'n/a' where the OS has none."""
     return ", ".join(f"{v:.{digits}f}" for v in os.getloadavg()) if hasattr(os, "getloadavg") else "n/a"
+
+
+def available_memory_bytes() -> int | None:
+    """Memory the kernel says new allocations can get without swapping (MemAvailable), or None when unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as handle:
+            for line in handle:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None

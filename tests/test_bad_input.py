@@ -226,3 +226,33 @@ def test_reading_and_writing_corrupt_scenes_raises_no_numpy_warnings(tmp_path):
         scene = random_scene(n=4, degree=0)
         scene.log_scales[1] = 500.0  # exp overflows in the .splat encoder, which clamps it
         write_scene(scene, tmp_path / "big.splat")
+
+
+# --- renders larger than the memory there is --------------------------------------------------------------
+
+
+def test_a_render_that_cannot_fit_in_memory_is_refused_before_allocating(monkeypatch):
+    import torch
+
+    import dresg_addon.machine as machine
+    from dresg_addon.camera import Camera, look_at
+    from dresg_addon.raster import render
+
+    n = 50
+    g = torch.Generator().manual_seed(0)
+    args = (
+        torch.randn(n, 3, generator=g),
+        torch.randn(n, 4, generator=g),
+        torch.full((n, 3), -2.0),
+        torch.full((n,), 2.0),
+    )
+    colors = torch.rand(n, 3, generator=g)
+    big = Camera(2048, 2048, 1800.0, 1800.0, 1024.0, 1024.0, look_at([0, 0, -3.0], [0, 0, 0]), "big")
+    monkeypatch.setattr(machine, "available_memory_bytes", lambda: 10**8)  # 0.1 GB left
+    with pytest.raises(CameraError, match=r"rendering 2048x2048 \(big\) needs about .* GB .* 0.1 GB are available"):
+        render(*args, colors, big)
+    monkeypatch.setattr(machine, "available_memory_bytes", lambda: None)  # unknown: no check
+    plain = render(*args, colors, big)
+    with torch.enable_grad():
+        kept = render(*args, colors.clone().requires_grad_(True), big)  # samples kept for a backward
+    assert torch.equal(plain.rgb, kept.rgb.detach()) and plain.n_pairs == kept.n_pairs > 0

@@ -28,6 +28,11 @@ def load_scene_and_cameras(args, default_orbit: int = 16):
 
     if (args.width is None) != (args.height is None):
         raise ConfigError("--width and --height go together")
+    from ..camera_io import MAX_IMAGE_SIDE
+
+    for flag, value in (("--width", args.width), ("--height", args.height)):
+        if value is not None and not 1 <= value <= MAX_IMAGE_SIDE:
+            raise ConfigError(f"{flag} {value} must be between 1 and {MAX_IMAGE_SIDE} pixels")
     result = read_scene_detailed(args.scene, drop_invalid=args.drop_invalid)
     if result.clamped:
         print(f"note: {clamped_note(result.clamped)}", file=sys.stderr)

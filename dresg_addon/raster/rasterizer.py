@@ -33,6 +33,11 @@ from ..camera import Camera
 from .projection import project_gaussians
 from .workers import cpu_workers, in_workers
 
+# Memory a render holds, measured on CPU renders: outputs and per-pixel scans, and each kept candidate
+# sample (its entry, sample and weight columns). Checked against the available memory before a large render.
+BYTES_PER_PIXEL = 64
+BYTES_PER_SAMPLE = 50
+CHECKED_PIXELS = 1 << 22  # renders of fewer pixels skip the check (they fit anywhere)
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
@@ -271,6 +276,7 @@ class _Plan:
     settings: RasterSettings
     visibility: str | None
     keep_contributions: bool
+    keep_samples: bool = True  # False: nothing needs the samples after compositing (no gradient, no extras)
     # Filled by the forward pass:
     n_pairs: int = 0
     visible: torch.Tensor | None = None  # [M] per depth-sorted Gaussian
@@ -311,10 +317,15 @@ class _Rasterize(torch.autograd.Function):
                 rgb[ch].narrow(0, r0 * width, n_pix).index_add_(0, s.pixel, weight * _take(cols[ch], s.gauss))
             log_final.narrow(0, r0 * width, n_pix).copy_(s.log_final)
             depth_sum.narrow(0, r0 * width, n_pix).index_add_(0, s.pixel, weight * _take(depth, s.gauss))
+            if not plan.keep_samples:  # a plain render: free each band's samples as soon as it is composited
+                return r0, n_pix, int(torch.count_nonzero(s.alpha)), None, None
             return r0, n_pix, entries, s, weight
 
         bands = in_workers(band, plan.bands, cpu_workers(device, len(plan.bands)))
-        plan.n_pairs = sum(int(torch.count_nonzero(s.alpha)) for _, _, _, s, _ in bands)
+        if plan.keep_samples:
+            plan.n_pairs = sum(int(torch.count_nonzero(s.alpha)) for _, _, _, s, _ in bands)
+        else:
+            plan.n_pairs, bands = sum(count for _, _, count, _, _ in bands), []
         t_final = torch.exp(log_final).to(dtype)
         covered = -torch.expm1(log_final).to(dtype)  # the sum of each pixel's weights
         pix_depth = torch.where(covered > 0, depth_sum / torch.where(covered > 0, covered, 1.0), 0.0)
@@ -457,7 +468,15 @@ def render(
         )  # fmt: skip
         est = torch.clamp(2.0 * torch.sqrt(fixed.r2 * cxx) + 1.0, max=width)
         bands = _plan_bands(fixed.y0, fixed.y1, est, height, settings.band_pairs)
-    plan = _Plan(fixed, bands, width, height, settings.dtype or out_dtype, settings, visibility, keep_contributions)
+    needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (*geometry, *channels))
+    keep_samples = needs_grad or bool(visibility) or keep_contributions
+    if height * width >= CHECKED_PIXELS and device.type == "cpu":
+        with torch.no_grad():
+            samples = float((est * (fixed.y1 - fixed.y0 + 1).to(est.dtype)).sum())
+        _check_memory(camera, samples if keep_samples else settings.band_pairs * cpu_workers(device, len(bands)))
+    plan = _Plan(
+        fixed, bands, width, height, settings.dtype or out_dtype, settings, visibility, keep_contributions, keep_samples
+    )  # fmt: skip
     rgb, t_final, depth_img = _Rasterize.apply(*geometry, *channels, plan)
     vis_full = None
     if visibility:
@@ -475,6 +494,20 @@ def render(
         plan.n_pairs,
         contributions,
     )
+
+
+def _check_memory(camera: Camera, samples: float) -> None:
+    """Raise CameraError, before allocating, when a render would need more memory than is available."""
+    from ..errors import CameraError
+    from ..machine import available_memory_bytes
+
+    available = available_memory_bytes()
+    needed = BYTES_PER_PIXEL * camera.height * camera.width + BYTES_PER_SAMPLE * samples
+    if available is not None and needed > available:
+        raise CameraError(
+            f"rendering {camera.width}x{camera.height} ({camera.name or 'camera'}) needs about {needed / 1e9:.1f} GB "
+            f"of memory and {available / 1e9:.1f} GB are available: render a smaller image"
+        )
 
 
 class _SparseColor(torch.autograd.Function):
