@@ -143,14 +143,11 @@ def match_color_histograms(pixels: torch.Tensor, style_pixels: torch.Tensor) -> 
         raise ImageError("the style image has no pixels to match colour histograms to")
     mu_s, cov_s = color_moments(style_pixels)
     axes = torch.linalg.eigh((cov_s + cov_s.T) / 2.0).eigenvectors  # [3, 3], columns
+    from .metrics import empirical_quantiles
+
     x = (pixels.to(torch.float64) - mu_s) @ axes
-    s = torch.sort((style_pixels.to(torch.float64) - mu_s) @ axes, dim=0).values  # [K, 3]
-    count, k = x.shape[0], s.shape[0]
-    position = ((torch.arange(count, dtype=torch.float64) + 0.5) * k / count - 0.5).clamp(0.0, k - 1)
-    low = position.floor().long()
-    high = (low + 1).clamp_max(k - 1)
-    frac = (position - low)[:, None]
-    quantiles = s[low] * (1.0 - frac) + s[high] * frac  # [M, 3], per axis, by rank
+    s = torch.sort(((style_pixels.to(torch.float64) - mu_s) @ axes).T.contiguous(), dim=1).values  # [3, K]
+    quantiles = empirical_quantiles(s, x.shape[0]).T  # [M, 3], per axis, by rank
     order = torch.sort(x, dim=0, stable=True).indices  # [M, 3]
     matched = torch.empty_like(x)
     matched.scatter_(0, order, quantiles)
@@ -256,16 +253,15 @@ def fit_color_map(
     axes = torch.linalg.eigh((cov_s + cov_s.T) / 2.0).eigenvectors
     if not histogram:
         return ColorMap(transform, mu_s, axes, None, None)
-    levels = torch.linspace(0.0, 1.0, HISTOGRAM_QUANTILES, dtype=torch.float64)
+    levels = torch.linspace(0.0, 1.0, HISTOGRAM_QUANTILES, dtype=torch.float64)  # min and max included
     mapped = (transform.apply_to_colors(pixels.to(torch.float64)) - mu_s) @ axes
     reference = (style.detach().reshape(3, -1).T.to(torch.float64) - mu_s) @ axes
-    source = _quantiles(mapped, levels)
-    target = _quantiles(reference, levels)
-    return ColorMap(transform, mu_s, axes, source, target)
+    return ColorMap(transform, mu_s, axes, _column_quantiles(mapped, levels), _column_quantiles(reference, levels))
 
 
-def _quantiles(samples: torch.Tensor, levels: torch.Tensor) -> torch.Tensor:  # [M, 3], [K] -> [3, K]
-    """Quantiles of each column at ``levels`` by linear interpolation between order statistics."""
+def _column_quantiles(samples: torch.Tensor, levels: torch.Tensor) -> torch.Tensor:  # [M, 3], [K] -> [3, K]
+    """Quantiles of each column at ``levels`` in [0, 1] (0: the minimum, 1: the maximum), linear between
+    order statistics."""
     ordered = torch.sort(samples, dim=0).values  # [M, 3]
     position = levels * (samples.shape[0] - 1)
     low = position.floor().long()

@@ -107,7 +107,7 @@ def _directions(dim: int, n: int, seed: int, dtype, device) -> torch.Tensor:  # 
     return (d / d.norm(dim=0, keepdim=True)).to(dtype=dtype, device=device)
 
 
-def _quantiles(sorted_values: torch.Tensor, k: int) -> torch.Tensor:  # [P, n] -> [P, k]
+def empirical_quantiles(sorted_values: torch.Tensor, k: int) -> torch.Tensor:  # [P, n] -> [P, k]
     """The empirical quantile function at levels (i + 0.5) / k, linear between order statistics.
 
     For ``k == n`` it returns the sorted values themselves, so equal sample counts need no interpolation.
@@ -136,8 +136,8 @@ def sliced_wasserstein_sorted(px: torch.Tensor, py: torch.Tensor, chunk: int = 3
     k = max(px.shape[1], py.shape[1])
     total = torch.zeros((), dtype=torch.float64, device=px.device)
     for start in range(0, px.shape[0], chunk):  # bounds the [chunk, K] interpolated quantiles
-        qx = _quantiles(px[start : start + chunk], k)
-        qy = _quantiles(py[start : start + chunk].to(px.dtype), k)
+        qx = empirical_quantiles(px[start : start + chunk], k)
+        qy = empirical_quantiles(py[start : start + chunk].to(px.dtype), k)
         total = total + ((qx - qy).to(torch.float64) ** 2).sum()
     return torch.sqrt(total / (px.shape[0] * k)).to(px.dtype)
 
