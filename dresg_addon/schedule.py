@@ -129,7 +129,7 @@ def gamma_snr_balanced_from_snr(snr):
     """Eq. 11 (``eq:snr-residual-weight``) in SNR form: gamma = 1 + 4 SNR / (1 + SNR)^2.
 
     Written as 1 + 4 / (SNR + 2 + 1/SNR) for SNR >= 1 and with SNR for SNR < 1, so that SNR = 0 and
-    SNR = +inf both give exactly 1 and the value is symmetric under SNR -> 1/SNR.
+    SNR = +inf both give exactly 1 and the value is symmetric under SNR -> 1/SNR (to rounding).
     """
     s = np.asarray(snr, dtype=np.float64)
     if np.any(s < 0) or np.any(np.isnan(s)):

@@ -21,7 +21,7 @@ from dresg_addon.io import read_scene, write_scene
 from dresg_addon.scene import SH_C0, GaussianScene
 
 REPO = Path(__file__).resolve().parents[1]
-# The preview preset cut down to one short stage; its render scale 0.5 makes the 64x48 cameras 32x24.
+# The preview preset cut down to one short stage; it renders the 64x48 cameras at full size.
 TINY_ARGS = [
     "--preset",
     "preview",
@@ -117,7 +117,7 @@ def test_stylize_writes_the_scene_log_views_and_checkpoint_and_resumes(files, tm
     assert (tmp_path / "out.checkpoint" / "checkpoint.pt").is_file()
     images = sorted(p.name for p in (views / "stage01").iterdir())
     assert len(images) == 12 and "ring_0_residual.png" in images
-    assert read_image(views / "stage01" / "ring_0_render.png").shape == (24, 32, 3)
+    assert read_image(views / "stage01" / "ring_0_render.png").shape == (48, 64, 3)
     assert {name: _digest(path) for name, path in files.items()} == before  # inputs untouched
 
     # The same command again resumes from the default checkpoint and writes the same scene.
