@@ -225,3 +225,30 @@ def camera_to_blender(
         pixel_aspect_y=float(aspect_y),
         matrix_world=c2w @ BLENDER_TO_OPENCV,
     )
+
+
+CLIP_MARGIN = 1.5  # clip_end beyond the farthest corner of the splats' box
+CLIP_RATIO = 1e4  # clip_end / clip_start: keeps Blender's depth buffer precise
+
+
+def clip_distances(camera: Camera, bounds_min, bounds_max, object_matrix_world=None) -> tuple[float, float]:
+    """``clip_start`` and ``clip_end`` (world units) that keep a box of splats inside a camera's range.
+
+    ``camera`` and the box are in the splat object's local frame; local depths are multiplied by the
+    object's uniform scale. clip_end is 1.5x the depth of the box's farthest corner, clip_start
+    clip_end / 1e4 (so a camera inside the box still sees what is in front of it).
+    """
+    lo, hi = np.asarray(bounds_min, dtype=np.float64), np.asarray(bounds_max, dtype=np.float64)
+    corners = np.array([[(lo, hi)[(k >> axis) & 1][axis] for axis in range(3)] for k in range(8)])
+    depths = corners @ camera.world_to_camera[:3, :3].T + camera.world_to_camera[:3, 3]
+    scale = 1.0 if object_matrix_world is None else object_uniform_scale(object_matrix_world)
+    far = CLIP_MARGIN * scale * float(np.max(np.linalg.norm(depths, axis=1)))
+    if not np.isfinite(far) or far <= 0.0:
+        raise CameraError(f"camera {camera.name!r}: the splats' bounds give no clip range")
+    return far / CLIP_RATIO, far
+
+
+def size_within(width: int, height: int, max_width: int, max_height: int) -> tuple[int, int]:
+    """The largest size of the aspect ``width : height`` inside ``max_width x max_height`` (never larger)."""
+    factor = min(1.0, max_width / width, max_height / height)
+    return max(1, round(width * factor)), max(1, round(height * factor))

@@ -261,13 +261,24 @@ def local_up(object_matrix_world: np.ndarray) -> np.ndarray:
     return up / np.linalg.norm(up)
 
 
+# Soft splats (the EEVEE preview): the rasterizer drops a Gaussian where opacity x falloff < 1/255, i.e.
+# beyond sqrt(2 ln 255) = 3.33 sigmas at full opacity. The instance is the unit ico sphere (subdivision 1),
+# whose flat faces lie 0.7947 from its centre, scaled so that the faces enclose that radius.
+GAUSSIAN_CUTOFF_SIGMAS = float(np.sqrt(2.0 * np.log(255.0)))
+ICO_INRADIUS = 0.7946544722917661  # of the unit-circumradius icosahedron
+SOFT_RADIUS = GAUSSIAN_CUTOFF_SIGMAS / ICO_INRADIUS  # sigmas from a splat's centre to its instance's vertices
+MAX_ALPHA = 0.99  # the rasterizer's cap on one splat's alpha
+
 # Axis conversions applied as the OBJECT transform (rotation matrices, file frame -> Blender world).
 AXIS_CONVERSIONS: dict[str, np.ndarray] = {
     # OpenCV / COLMAP (x right, y down, z forward) -> Blender (z up, front view looking along +y):
     # x -> x, z -> y, -y -> z, i.e. a rotation of -90 degrees about X.
     "OPENCV_TO_BLENDER": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
-    "NONE": np.eye(3),
+    # y up, z towards the viewer (OpenGL, glTF, three.js; luigi.ply): x -> x, -z -> y, y -> z, +90 degrees about X.
+    "Y_UP_TO_BLENDER": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+    "NONE": np.eye(3),  # z up, as Blender
 }
+AXIS_LABELS = {"OPENCV_TO_BLENDER": "OpenCV / COLMAP (y down)", "Y_UP_TO_BLENDER": "Y up", "NONE": "Z up (as Blender)"}
 
 # Flat splats are drawn as disks in the instance's XY plane, so each splat's smallest axis must
 # become the instance's Z. These rotations (Blender XYZ Euler angles, radians) permute the axes:

@@ -21,10 +21,16 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
     filter_glob: bpy.props.StringProperty(default="*.ply;*.splat", options={"HIDDEN"})
     axis_conversion: bpy.props.EnumProperty(
         name="Axes",
-        description="Frame the file is in; the conversion is the object's rotation, the data is kept as is",
+        description="Which way is up in the file; choose another if the scene stands on its head or side "
+        "(it only sets the object's rotation)",
         items=(
-            ("OPENCV_TO_BLENDER", "OpenCV / COLMAP", "x right, y down, z forward: rotate -90 degrees about X"),
-            ("NONE", "Blender (none)", "Use the file's coordinates unchanged"),
+            (
+                "OPENCV_TO_BLENDER",
+                "OpenCV / COLMAP (y down)",
+                "Captures trained with COLMAP cameras (most 3DGS scenes)",
+            ),
+            ("Y_UP_TO_BLENDER", "Y Up", "y up, z towards the viewer (OpenGL, glTF, many exported models)"),
+            ("NONE", "Z Up (as Blender)", "The file's coordinates unchanged"),
         ),
         default="OPENCV_TO_BLENDER",
     )
@@ -58,9 +64,15 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
         description="Realize the preview so Solid mode can show the colours (heavier for millions of splats)",
         default=True,
     )
+    soft_render: bpy.props.BoolProperty(
+        name="Soft Splats in Renders",
+        description="Renders (EEVEE) draw each splat with its opacity and Gaussian falloff, as the stylizer sees it",
+        default=True,
+    )
     set_viewport_shading: bpy.props.BoolProperty(
-        name="Show Attribute Colours",
-        description="Set Solid mode of the 3D views to colour by attribute",
+        name="Show Splat Colours",
+        description="Set the 3D views' Solid mode and Workbench renders to the splat colours, and the view "
+        "transform to Standard so colours show as captured",
         default=True,
     )
     drop_invalid: bpy.props.BoolProperty(
@@ -87,6 +99,7 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
                 min_opacity=self.min_opacity,
                 max_splats=self.max_splats,
                 solid_colors=self.solid_colors,
+                soft_render=self.soft_render,
             )
         except DresgError as error:
             self.report({"ERROR"}, str(error))
@@ -95,6 +108,9 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
             for area in context.screen.areas if context.screen else ():
                 if area.type == "VIEW_3D":
                     area.spaces.active.shading.color_type = "VERTEX"
+            shading = context.scene.display.shading  # Workbench renders (F12)
+            shading.light, shading.color_type = "FLAT", "VERTEX"
+            context.scene.view_settings.view_transform = "Standard"
         seconds = time.perf_counter() - start
         message = f"Imported {len(result.scene)} splats ({result.format.value}) as '{obj.name}' in {seconds:.2f} s"
         if result.dropped:
@@ -108,7 +124,7 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
         layout.use_property_split = True
         for name in ("axis_conversion", "shape", "scale_factor", "min_opacity", "max_splats"):
             layout.prop(self, name)
-        for name in ("solid_colors", "set_viewport_shading", "drop_invalid"):
+        for name in ("solid_colors", "soft_render", "set_viewport_shading", "drop_invalid"):
             layout.prop(self, name)
 
 

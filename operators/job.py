@@ -73,6 +73,16 @@ class StylizeJob:
     # -- life cycle ----------------------------------------------------------------------------
 
     @property
+    def cameras(self) -> list:
+        """The candidate views (engine cameras)."""
+        return self._inputs[1]
+
+    @property
+    def views(self) -> list[int] | None:
+        """Indices of the given active views, or None when the engine selects them by coverage."""
+        return self._inputs[3]
+
+    @property
     def running(self) -> bool:
         return self.state == "RUNNING"
 

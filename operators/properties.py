@@ -26,19 +26,27 @@ CONFIG_FIELDS = (
 )
 
 SCHEDULE_LABELS = {
-    "snr": ("SNR (paper)", "gamma = 1 + 4 abar (1 - abar): strongest in the middle of the schedule"),
-    "fixed1": ("Fixed 1", "gamma = 1: the proposal's residual as is"),
-    "fixed2": ("Fixed 2", "gamma = 2: the residual doubled at every stage"),
-    "triangle": ("Triangle", "gamma = 1 + (1 - |2 abar - 1|)"),
-    "cosine": ("Cosine", "gamma = 1 + sin^2 over the stage index"),
+    "snr-balanced": (
+        "Balanced (paper)",
+        "Pushes hardest towards the painting in the middle stages, gently at the start and end",
+    ),
+    "fixed-1": ("Even", "Each stage takes the proposal as it is: milder, keeps more of the scene"),
+    "fixed-2": ("Strong", "Each stage pushes twice as far as the proposal: bolder, may overshoot"),
+    "triangle": ("Triangle", "Like Balanced, rising and falling linearly over the stages"),
+    "timestep-cosine": ("Cosine", "Like Balanced, following the stage number instead of the noise level"),
 }
 
-
-PRESET_DESCRIPTIONS = {
-    "paper": "The paper's settings: 20 stages, 30 fit steps, 448x320 proposals, full resolution",
-    "cpu": "The paper's 20 stages with colour-only fitting: slow on a CPU",
-    "standard": "Up to 6 stages (stops when the look settles), at most 8 views, 448x320 proposals",
-    "preview": "A quick look: up to 4 stages, at most 4 views, 224x160 proposals, half resolution",
+PRESET_LABELS = {
+    "standard": (
+        "Standard",
+        "Up to 6 stages, stopping once the look settles; up to 16 views. About 3 min for 273k splats on 2 cores",
+    ),
+    "preview": ("Preview", "A quick look: up to 4 stages and 8 views. Under a minute for 273k splats on 2 cores"),
+    "paper": ("Paper (GPU)", "The paper's exact settings: 20 stages with geometry offsets. Hours on a CPU"),
+    "cpu": (
+        "Paper, Colours Only",
+        "The paper's 20 stages, fitting colours only. About 15 min for 273k splats on 2 cores",
+    ),
 }
 
 
@@ -67,76 +75,133 @@ class DRESG_PG_view(bpy.types.PropertyGroup):
 class DRESG_PG_settings(bpy.types.PropertyGroup):
     style_source: EnumProperty(
         name="Style Source",
+        description="Where the painting comes from",
         items=(("FILE", "File", "A style image file on disk"), ("IMAGE", "Image", "An image already in Blender")),
         default="FILE",
     )
-    style_path: StringProperty(name="Style Image", description="Reference style picture", subtype="FILE_PATH")
-    style_image: PointerProperty(name="Style Image", type=bpy.types.Image, description="Reference style picture")
+    style_path: StringProperty(
+        name="Style Image", description="The painting whose look the scene takes on", subtype="FILE_PATH"
+    )
+    style_image: PointerProperty(
+        name="Style Image", type=bpy.types.Image, description="The painting whose look the scene takes on"
+    )
     preset: EnumProperty(
         name="Preset",
-        description="Load a preset's values into the fields below",
-        items=[(name, name.title(), PRESET_DESCRIPTIONS.get(name, f"The {name} preset")) for name in PRESETS],
+        description="Fill the settings below for a speed and quality; you can change them afterwards",
+        items=[(name, *PRESET_LABELS[name]) for name in PRESETS],
         default=DEFAULT_PRESET,
         update=_apply_preset,
     )
     proposal: EnumProperty(
         name="Proposal",
-        description="What proposes the stylized views at each stage",
+        description="What paints each view before the splats take on its colours",
         items=(
             ("synth", "Painting Synthesis (no download)", "Pastes the painting's own strokes; runs on the CPU"),
             ("sd15", "Stable Diffusion 1.5", "The paper's diffusion proposal (model path in the add-on preferences)"),
         ),
         default="synth",
     )
-    stages: IntProperty(name="Stages", min=1, soft_max=20, default=_default("stages"))
+    stages: IntProperty(
+        name="Stages",
+        description="Rounds of painting the views and fitting the splats: more moves further towards the painting, "
+        "each costs a few seconds per view",
+        min=1,
+        soft_max=20,
+        default=_default("stages"),
+    )
     fit_steps: IntProperty(
-        name="Fit Steps", description="Optimizer steps per stage", min=0, soft_max=200, default=_default("fit_steps")
+        name="Fit Steps",
+        description="How closely the splats follow each stage's painted views (time grows with it)",
+        min=0,
+        soft_max=200,
+        default=_default("fit_steps"),
     )
     post_steps: IntProperty(
-        name="Post Steps", description="Steps of the final colour stage", min=0, default=_default("post_steps")
+        name="Final Colour Steps",
+        description="Steps of the last stage, which matches the painting's colours",
+        min=0,
+        default=_default("post_steps"),
     )
     proposal_width: IntProperty(
-        name="Width", description="Proposal resolution", min=8, default=_default("proposal_width")
+        name="Width",
+        description="Size the views are painted at: larger shows finer strokes, costs more time",
+        min=8,
+        default=_default("proposal_width"),
     )
     proposal_height: IntProperty(
-        name="Height", description="Proposal resolution", min=8, default=_default("proposal_height")
+        name="Height",
+        description="Size the views are painted at: larger shows finer strokes, costs more time",
+        min=8,
+        default=_default("proposal_height"),
     )
     content_weight: FloatProperty(
-        name="Content Weight", description="w_c", min=0.0, soft_max=1.0, default=_default("content_weight")
+        name="Keep Scene",
+        description="How much of the scene's own shapes and shading the painted views keep: higher keeps more",
+        min=0.0,
+        soft_max=1.0,
+        default=_default("content_weight"),
     )
     schedule: EnumProperty(
         name="Schedule",
-        description="Residual-strength schedule over the stages",
+        description="How far each stage pushes towards the painting",
         items=[(name, *SCHEDULE_LABELS.get(name, (name, name))) for name in SCHEDULES],
         default=_default("schedule"),
     )
     optimize_geometry: BoolProperty(
         name="Geometry Offsets",
-        description="Also optimise small offsets of positions, scales and rotations",
+        description="Also let the splats move and reshape a little: closer to the paper, several times slower",
         default=_default("optimize_geometry"),
     )
     max_views: IntProperty(
-        name="Max Views", description="Cap on the active views (0: no cap)", min=0, default=_default("max_views")
+        name="Max Views",
+        description="Paint from at most this many cameras, those that see the most of the scene (0: no limit)",
+        min=0,
+        default=_default("max_views"),
     )
     render_scale: FloatProperty(
-        name="Render Scale",
-        description="Fitting resolution relative to the scene's render resolution",
+        name="Fit Scale",
+        description="Resolution the splats are fitted at, relative to the cameras' (see Fit Resolution): lower is faster",
         min=0.05,
         max=4.0,
         default=_default("render_scale"),
     )
+    fit_resolution: EnumProperty(
+        name="Fit Resolution",
+        description="Image size of the cameras while stylizing",
+        items=(
+            ("PRESET", "Preset's", "The scene's aspect within the painting size above (e.g. 448x252): fast on a CPU"),
+            ("SCENE", "Scene's Render", "Output Properties > Resolution: finer, slower (4x the pixels costs ~4x)"),
+        ),
+        default="PRESET",
+    )
     sh_rest: EnumProperty(
         name="View-Dependent Colour",
-        items=(("zero", "Drop", "The stylized scene has view-independent colour"), ("keep", "Keep", "Keep SH bands")),
+        description="Whether colours still change with the viewing angle after stylizing",
+        items=(
+            ("zero", "Drop", "One colour per splat from every angle, as a painting has"),
+            ("keep", "Keep", "Keep the capture's angle-dependent shading on top of the new colours"),
+        ),
         default=_default("sh_rest"),
     )
-    seed: IntProperty(name="Seed", min=0, default=_default("seed"))
+    seed: IntProperty(
+        name="Seed", description="Another number gives another, equally valid result", min=0, default=_default("seed")
+    )
     orbit_count: IntProperty(name="Cameras", description="Orbit cameras to add", min=1, max=256, default=12)
     orbit_elevation: FloatProperty(
-        name="Elevation", description="Ring elevation (degrees)", min=-89.0, max=89.0, default=20.0
+        name="Elevation",
+        description="How far above the splats' centre the ring looks down (degrees)",
+        min=-89.0,
+        max=89.0,
+        default=20.0,
     )
-    orbit_fov: FloatProperty(name="Field of View", description="Horizontal (degrees)", min=5.0, max=170.0, default=50.0)
-    camera_index: IntProperty(name="Active Camera Row")
+    orbit_fov: FloatProperty(
+        name="Field of View",
+        description="Horizontal field of view of each camera (degrees)",
+        min=5.0,
+        max=170.0,
+        default=50.0,
+    )
+    camera_index: IntProperty(name="Active Camera Row", description="The highlighted row of the Views list")
 
     def config(self, model_path: str = "", dino_path: str = "") -> StylizeConfig:
         """The StylizeConfig these fields describe (ConfigError when a combination cannot work)."""

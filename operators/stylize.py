@@ -9,7 +9,7 @@ from ..dresg_addon import splat_mesh
 from ..dresg_addon.errors import DresgError, ImageError
 from . import ADDON_PACKAGE, job
 from .splat_object import is_splat_object, restore_original, scene_from_object
-from .views import active_cameras, engine_cameras, scene_cameras
+from .views import active_cameras, fitting_cameras, scene_cameras
 
 IMAGE_KINDS = ("render", "proposal", "target", "residual")
 
@@ -46,8 +46,9 @@ def style_image(settings) -> tuple[np.ndarray, str]:
 def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[job.StylizeJob, str]:
     """A job for the active splat object from the panel's settings (not started), and a note for the user.
 
-    Views: the ticked cameras are the active views; with none ticked, the engine chooses among all of the
-    scene's cameras by coverage, or among an orbit ring (not added to the scene) when there are none.
+    Views: the ticked cameras are the active views (when there are more than Max Views, the engine picks
+    that many of them by coverage); with none ticked, it chooses among all of the scene's cameras by
+    coverage, or among an orbit ring (not added to the scene) when there are none.
     Model paths default to the add-on preferences.
     """
     obj, scene = context.active_object, context.scene
@@ -65,8 +66,11 @@ def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[
     camera_objects = ticked or scene_cameras(scene)
     views = list(range(len(ticked))) if ticked else None
     note = ""
+    if views is not None and 0 < config.max_views < len(views):
+        views = None  # the engine picks Max Views of the ticked cameras by coverage
+        note = f"{len(ticked)} cameras ticked, Max Views is {config.max_views}: the ones that cover the most are used"
     if camera_objects:
-        cameras = engine_cameras(scene, obj, camera_objects)
+        cameras = fitting_cameras(scene, obj, camera_objects)
     else:
         from ..dresg_addon.orbit import orbit_cameras
 
@@ -83,8 +87,7 @@ def _cuda_available() -> bool:
 
 
 class DRESG_OT_stylize(bpy.types.Operator):
-    """Stylize the active splat object after the style image, as seen from the ticked cameras (DReSG).
-    Runs in the background; the viewport shows the colours after each stage. Esc cancels"""
+    """Give the selected splats the look of the style image, from the ticked cameras; runs in the background, Esc cancels"""
 
     bl_idname = "dresg.stylize"
     bl_label = "Stylize Gaussians"
@@ -113,6 +116,10 @@ class DRESG_OT_stylize(bpy.types.Operator):
             return False
         if not torch_available():
             cls.poll_message_set("PyTorch is not installed: use Install Dependencies in the add-on preferences")
+            return False
+        settings = context.scene.dresg
+        if (settings.style_path if settings.style_source == "FILE" else settings.style_image) in ("", None):
+            cls.poll_message_set("Choose a style image first (Style panel)")
             return False
         return True
 

@@ -4,8 +4,11 @@ Cameras are converted in the splat object's LOCAL frame (its transform, axis con
 is respected) by :mod:`dresg_addon.blender_camera`; the render resolution is the scene's.
 """
 
+import os
+
 import bpy
 import numpy as np
+from bpy_extras.io_utils import ImportHelper
 from mathutils import Matrix
 
 from ..dresg_addon import blender_camera
@@ -13,6 +16,7 @@ from ..dresg_addon.errors import DresgError
 from .splat_object import is_splat_object, scene_from_object
 
 ORBIT_COLLECTION = "DReSG Orbit Cameras"
+IMPORTED_COLLECTION = "DReSG Cameras"
 
 
 def scene_cameras(scene) -> list:
@@ -56,6 +60,29 @@ def engine_cameras(scene, splat_object, camera_objects) -> list:
     return cameras
 
 
+def fit_size(scene) -> tuple[int, int]:
+    """The cameras' image size while stylizing, before Fit Scale: the scene's render size, or that aspect
+    within the painting size when Fit Resolution is the preset's."""
+    settings = scene.dresg
+    render = scene.render
+    width = render.resolution_x * render.resolution_percentage // 100
+    height = render.resolution_y * render.resolution_percentage // 100
+    if settings.fit_resolution == "PRESET":
+        return blender_camera.size_within(width, height, settings.proposal_width, settings.proposal_height)
+    return width, height
+
+
+def fitting_cameras(scene, splat_object, camera_objects) -> list:
+    """Engine cameras for camera objects at the size stylizing and view selection use (:func:`fit_size`)."""
+    from ..dresg_addon.camera_io import resize_cameras
+
+    cameras = engine_cameras(scene, splat_object, camera_objects)
+    width, height = fit_size(scene)
+    if cameras and (cameras[0].width, cameras[0].height) != (width, height):
+        cameras = resize_cameras(cameras, width=width, height=height)
+    return cameras
+
+
 def add_camera_objects(context, splat_object, cameras, collection_name: str = ORBIT_COLLECTION) -> list:
     """Blender camera objects reproducing engine cameras given in the splat object's local frame."""
     collection = bpy.data.collections.get(collection_name)
@@ -64,14 +91,16 @@ def add_camera_objects(context, splat_object, cameras, collection_name: str = OR
     if collection.name not in context.scene.collection.children:
         context.scene.collection.children.link(collection)
     matrix = np.array(splat_object.matrix_world)
+    corners = np.array([tuple(corner) for corner in splat_object.bound_box])
     objects = []
     for camera in cameras:
         params = blender_camera.camera_to_blender(camera, matrix)
+        clip_start, clip_end = blender_camera.clip_distances(camera, corners.min(0), corners.max(0), matrix)
         data = bpy.data.cameras.new(camera.name)
         data.lens, data.sensor_fit = params.lens, params.sensor_fit
         data.sensor_width, data.sensor_height = params.sensor_width, params.sensor_height
         data.shift_x, data.shift_y = params.shift_x, params.shift_y
-        data.clip_start = 0.01
+        data.clip_start, data.clip_end = clip_start, clip_end
         obj = bpy.data.objects.new(camera.name, data)
         obj.matrix_world = Matrix(params.matrix_world.tolist())
         obj.dresg_view.use = True
@@ -88,7 +117,7 @@ def _splat_poll(cls, context) -> bool:
 
 
 class DRESG_OT_select_views(bpy.types.Operator):
-    """Tick the cameras that together cover the scene's Gaussians best (greedy capped coverage, Sec. 4.3)"""
+    """Tick the cameras that together see the most of the splats (up to Max Views), and show each one's share"""
 
     bl_idname = "dresg.select_views"
     bl_label = "Select Views by Coverage"
@@ -115,7 +144,7 @@ class DRESG_OT_select_views(bpy.types.Operator):
         settings = scene.dresg
         objects = scene_cameras(scene)
         try:
-            cameras = engine_cameras(scene, obj, objects)
+            cameras = fitting_cameras(scene, obj, objects)
             selection = select_active_views(scene_from_object(obj), cameras, settings.config())
         except DresgError as error:
             self.report({"ERROR"}, str(error))
@@ -184,6 +213,48 @@ class DRESG_OT_add_orbit_cameras(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class DRESG_OT_import_cameras(bpy.types.Operator, ImportHelper):
+    """Add the cameras of a capture (cameras.json, COLMAP sparse model, LLFF poses_bounds.npy) around the splats"""
+
+    bl_idname = "dresg.import_cameras"
+    bl_label = "Import Cameras"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filter_glob: bpy.props.StringProperty(default="*.json;*.bin;*.txt;*.npy", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        return _splat_poll(cls, context)
+
+    def execute(self, context):
+        from ..dresg_addon.camera_io import load_cameras
+
+        obj, scene = context.active_object, context.scene
+        path = bpy.path.abspath(self.filepath)
+        try:
+            cameras = load_cameras(path)
+            objects = add_camera_objects(context, obj, cameras, IMPORTED_COLLECTION)
+        except DresgError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        # Blender cameras share the scene's resolution: take the capture's (the first camera's when they differ).
+        sizes = sorted({(camera.width, camera.height) for camera in cameras})
+        render = scene.render
+        render.resolution_x, render.resolution_y = cameras[0].width, cameras[0].height
+        render.resolution_percentage = 100
+        if scene.camera is None:
+            scene.camera = objects[0]
+        message = f"Added {len(objects)} cameras from {os.path.basename(os.path.normpath(path))}"
+        message += f"; render size set to {cameras[0].width}x{cameras[0].height}"
+        if len(sizes) > 1:
+            self.report(
+                {"WARNING"}, f"{message} ({len(sizes)} image sizes in the file: intrinsics of the others differ)"
+            )
+        else:
+            self.report({"INFO"}, message)
+        return {"FINISHED"}
+
+
 def _render_params(scene) -> blender_camera.BlenderCameraParams:
     render = scene.render
     return blender_camera.BlenderCameraParams(
@@ -208,4 +279,4 @@ class DRESG_OT_tick_views(bpy.types.Operator):
         return {"FINISHED"}
 
 
-classes = (DRESG_OT_select_views, DRESG_OT_add_orbit_cameras, DRESG_OT_tick_views)
+classes = (DRESG_OT_select_views, DRESG_OT_add_orbit_cameras, DRESG_OT_import_cameras, DRESG_OT_tick_views)

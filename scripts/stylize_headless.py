@@ -4,8 +4,10 @@
     blender -b [scene.blend] -P scripts/stylize_headless.py -- --ply IN.ply --style STYLE.jpg --out OUT.ply [options]
     python scripts/stylize_headless.py --ply IN.ply --style STYLE.jpg --out OUT.ply [--blend scene.blend] [options]
 
-The second form needs the ``bpy`` module. With a .blend, its cameras are the views (the ticked ones,
-or all of them); without cameras, an orbit ring is added around the splats. Background mode runs the
+The second form needs the ``bpy`` module. Views: the cameras of ``--cameras`` (cameras.json, a COLMAP
+model, poses_bounds.npy) when given; else the .blend's cameras (the ticked ones, or all of them); else
+an orbit ring of ``--orbit`` cameras around the splats. Without a .blend the run starts from an empty
+scene, not Blender's startup file (whose default camera is not a view of the splats). Background mode runs the
 optimizer synchronously and prints its progress. Exit code 0 on success, 1 on a bad command line,
 2 when an operator fails (its message is printed).
 """
@@ -19,6 +21,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "stylize_gaussians"
+AXES = {"opencv": "OPENCV_TO_BLENDER", "y-up": "Y_UP_TO_BLENDER", "z-up": "NONE", "none": "NONE"}
 OVERRIDES = {  # command-line option -> panel setting
     "stages": "stages",
     "fit_steps": "fit_steps",
@@ -67,7 +70,13 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--proposal", choices=PROPOSALS, default="synth")
     parser.add_argument("--model-path", default="", help="SD1.5 diffusers folder or .safetensors (sd15)")
     parser.add_argument("--dino-path", default="", help="local DINOv2 weights for the feature loss")
-    parser.add_argument("--axes", choices=("opencv", "none"), default="opencv", help="frame of the input file")
+    parser.add_argument(
+        "--axes",
+        choices=tuple(AXES),
+        default="opencv",
+        help="which way is up in the input file (default: opencv, y down)",
+    )
+    parser.add_argument("--cameras", help="camera file or folder (cameras.json, COLMAP, poses_bounds.npy)")
     parser.add_argument("--orbit", type=int, default=12, help="orbit cameras to add when there are none")
     parser.add_argument("--stages", type=int)
     parser.add_argument("--fit-steps", type=int)
@@ -98,11 +107,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.blend:
             bpy.ops.wm.open_mainfile(filepath=args.blend)
+        elif not bpy.data.filepath:
+            bpy.ops.wm.read_factory_settings(use_empty=True)
+            print("[stylize] no .blend: starting from an empty scene")
         load_addon()
         scene = bpy.context.scene
-        bpy.ops.dresg.import_splats(
-            filepath=args.ply, axis_conversion="OPENCV_TO_BLENDER" if args.axes == "opencv" else "NONE"
-        )
+        bpy.ops.dresg.import_splats(filepath=args.ply, axis_conversion=AXES[args.axes])
         settings = scene.dresg
         settings.preset = args.preset
         for option, field in OVERRIDES.items():
@@ -112,7 +122,12 @@ def main(argv: list[str] | None = None) -> int:
         settings.proposal = args.proposal
         settings.style_source, settings.style_path = "FILE", args.style
         cameras = [obj for obj in scene.objects if obj.type == "CAMERA"]
-        if cameras:
+        if args.cameras:
+            for obj in cameras:  # the file's cameras are the views, not the .blend's
+                obj.dresg_view.use = False
+            bpy.ops.dresg.import_cameras(filepath=args.cameras)
+            print(f"[stylize] using the cameras of {args.cameras}")
+        elif cameras:
             print(f"[stylize] using the .blend's cameras: {', '.join(sorted(obj.name for obj in cameras))}")
         else:
             bpy.ops.dresg.add_orbit_cameras(count=args.orbit)

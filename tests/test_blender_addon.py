@@ -20,6 +20,7 @@ F3_LABELS = {
     "dresg.stylize": "Stylize Gaussians",
     "dresg.select_views": "Select Views by Coverage",
     "dresg.add_orbit_cameras": "Add Orbit Cameras",
+    "dresg.import_cameras": "Import Cameras",
     "dresg.restore_colors": "Restore Original Colours",
 }
 

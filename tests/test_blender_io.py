@@ -234,8 +234,15 @@ def test_display_options_hide_splats_but_keep_the_data(addon, tmp_path):
 
 
 def render_workbench(path, width=96, height=72) -> np.ndarray:
-    """Workbench render (flat light, attribute colours, Standard view) -> [H, W, 4] in [0, 1]."""
+    """Workbench render (flat light, attribute colours, Standard view) -> [H, W, 4] in [0, 1].
+
+    Soft splats (EEVEE's preview) are turned off: Workbench shows the realized splats' colours."""
+    from stylize_gaussians.operators.splat_object import INPUT_SOFT, set_modifier_input, splat_modifier
+
     scene = bpy.context.scene
+    for obj in scene.objects:
+        if splat_modifier(obj) is not None:
+            set_modifier_input(splat_modifier(obj), INPUT_SOFT, False)
     scene.render.engine = "BLENDER_WORKBENCH"
     scene.display.shading.light = "FLAT"
     scene.display.shading.color_type = "VERTEX"

@@ -57,7 +57,12 @@ def attribute(obj, name):
 def render_mean_colour(path) -> np.ndarray:
     scene = bpy.context.scene
     scene.camera = bpy.data.objects["orbit_000"]
-    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.render.engine = "BLENDER_WORKBENCH"  # shows the realized splats, not the soft ones
+    from stylize_gaussians.operators.splat_object import INPUT_SOFT, set_modifier_input, splat_modifier
+
+    for obj in scene.objects:
+        if splat_modifier(obj) is not None:
+            set_modifier_input(splat_modifier(obj), INPUT_SOFT, False)
     scene.display.shading.light = "FLAT"
     scene.display.shading.color_type = "VERTEX"
     scene.view_settings.view_transform = "Standard"
@@ -173,7 +178,7 @@ def test_worker_errors_reach_the_job_and_the_report(luigi, tmp_path):
 def test_select_views_by_coverage_ticks_the_engine_choice(luigi):
     from stylize_gaussians.dresg_addon.pipeline import select_active_views
     from stylize_gaussians.operators.splat_object import scene_from_object
-    from stylize_gaussians.operators.views import engine_cameras, scene_cameras
+    from stylize_gaussians.operators.views import fitting_cameras, scene_cameras
 
     bpy.ops.dresg.add_orbit_cameras(count=4, elevation=40.0)
     scene = bpy.context.scene
@@ -181,7 +186,7 @@ def test_select_views_by_coverage_ticks_the_engine_choice(luigi):
     assert len(objects) == 6
     assert bpy.ops.dresg.select_views() == {"FINISHED"}
     expected = select_active_views(
-        scene_from_object(luigi), engine_cameras(scene, luigi, objects), scene.dresg.config()
+        scene_from_object(luigi), fitting_cameras(scene, luigi, objects), scene.dresg.config()
     )
     assert [obj.dresg_view.use for obj in objects] == [i in expected.indices for i in range(len(objects))]
     assert [obj.dresg_view.pick for obj in objects] == [
@@ -222,3 +227,39 @@ def test_headless_script_with_a_blend_file(addon, shared_data, tmp_path):
         timeout=120,
     )
     assert bad.returncode == 2 and "nope.ply" in bad.stderr
+
+
+def test_headless_script_without_a_blend_file(shared_data, tmp_path):
+    from dresg_addon.camera_io import write_cameras_json
+    from dresg_addon.orbit import orbit_cameras
+
+    ply, style = shared_data("scenes/luigi.ply"), shared_data("styles/the_scream.jpg")
+    quick = ["--stages", "1", "--fit-steps", "2", "--post-steps", "1", "--width", "64", "--height", "48"]
+    quick += ["--max-views", "2", "--render-scale", "0.5", "--no-geometry"]
+    script = [sys.executable, str(REPO / "scripts" / "stylize_headless.py"), "--ply", str(ply), "--style", str(style)]
+
+    # No .blend: Blender's startup camera is not a view; the orbit ring is, and the script says so.
+    result = subprocess.run(
+        script + ["--out", str(tmp_path / "a.ply"), "--orbit", "3"] + quick, capture_output=True, text=True, timeout=600
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "no .blend: starting from an empty scene" in result.stdout
+    assert "no cameras: added 3 orbit cameras" in result.stdout
+    assert "Camera" not in result.stdout.replace("Cameras", "")
+    assert re.search(r"active views: 2 of 3", result.stdout)
+
+    # --cameras: the file's cameras are the views.
+    cameras = orbit_cameras(read_scene(ply), 4, width=96, height=72, up=(0.0, 1.0, 0.0))
+    write_cameras_json(tmp_path / "cameras.json", cameras)
+    result = subprocess.run(
+        script
+        + ["--out", str(tmp_path / "b.ply"), "--cameras", str(tmp_path / "cameras.json"), "--axes", "y-up"]
+        + quick,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert f"using the cameras of {tmp_path / 'cameras.json'}" in result.stdout
+    assert re.search(r"active views: 2 of 4", result.stdout)
+    assert read_scene(tmp_path / "b.ply").means.shape == read_scene(ply).means.shape

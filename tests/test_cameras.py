@@ -17,6 +17,8 @@ from dresg_addon.blender_camera import (
     blender_intrinsics,
     blender_to_camera,
     camera_to_blender,
+    clip_distances,
+    size_within,
 )
 from dresg_addon.camera import Camera, look_at
 from dresg_addon.camera_io import (
@@ -708,3 +710,24 @@ def test_orbit_errors():
         orbit_cameras(means, 2, up=(0.0, 0.0, 0.0))
     with pytest.raises(ConfigError, match="azimuth"):
         orbit_cameras(means, 2, azimuth_offset_deg=float("nan"))
+
+
+def test_size_within_keeps_the_aspect_and_never_enlarges():
+    assert size_within(1920, 1080, 448, 320) == (448, 252)
+    assert size_within(1080, 1920, 448, 320) == (180, 320)
+    assert size_within(100, 50, 448, 320) == (100, 50)
+    assert size_within(1, 16384, 448, 320) == (1, 320)  # never below one pixel
+
+
+def test_clip_distances_cover_the_box_at_any_scale():
+    camera = Camera(64, 48, 50.0, 50.0, 32.0, 24.0, look_at([0.0, 0.0, -2000.0], [0.0, 0.0, 0.0]))
+    near, far = clip_distances(camera, [-10.0] * 3, [10.0] * 3)
+    assert far >= np.linalg.norm([10.0, 10.0, 2010.0]) and near == pytest.approx(far / 1e4)
+    scaled = np.diag([3.0, 3.0, 3.0, 1.0])  # a uniformly scaled object: world distances are 3x local ones
+    assert clip_distances(camera, [-10.0] * 3, [10.0] * 3, scaled)[1] == pytest.approx(3.0 * far)
+    inside = Camera(64, 48, 50.0, 50.0, 32.0, 24.0, look_at([0.0, 0.0, -1.0], [0.0, 0.0, 0.0]))
+    near, far = clip_distances(inside, [-1e4] * 3, [1e4] * 3)  # a camera inside a huge box still sees near things
+    assert near < 10.0 and far > 1.7e4
+    point = Camera(64, 48, 50.0, 50.0, 32.0, 24.0, look_at([0.0, 0.0, -1.0], [0.0, 0.0, 0.0]))
+    with pytest.raises(CameraError, match="no clip range"):
+        clip_distances(point, point.center, point.center)

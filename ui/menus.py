@@ -18,6 +18,7 @@ OPERATORS = (
     (None, None),
     ("dresg.select_views", "VIEWZOOM"),
     ("dresg.add_orbit_cameras", "CAMERA_DATA"),
+    ("dresg.import_cameras", "OUTLINER_OB_CAMERA"),
 )
 
 

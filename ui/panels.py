@@ -1,23 +1,25 @@
-"""The "Gaussians" sidebar tab of the 3D view: the Stylize Gaussians panel and its sub-panels."""
+"""The "Stylize Gaussians" sidebar tab of the 3D view: the Stylize Gaussians panel and its sub-panels."""
 
 import textwrap
 
 import bpy
 
+from ..dresg_addon.splat_mesh import AXIS_LABELS
 from ..operators import dependencies, job
 from ..operators.splat_object import (
     INPUT_MAX_SPLATS,
     INPUT_MIN_OPACITY,
     INPUT_SCALE,
     INPUT_SHAPE,
+    INPUT_SOFT,
     INPUT_SOLID,
     is_splat_object,
     splat_modifier,
 )
 from ..operators.stylize import addon_preferences
-from ..operators.views import scene_cameras
+from ..operators.views import fit_size, scene_cameras
 
-CATEGORY = "Gaussians"
+CATEGORY = "Stylize Gaussians"
 
 
 def _wrapped(layout, text: str, width: int = 48, icon: str = "NONE") -> None:
@@ -76,7 +78,8 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
         mesh = obj.data
         box = layout.box()
         box.label(text=f"{obj.name}: {len(mesh.vertices):,} splats", icon="OUTLINER_OB_POINTCLOUD")
-        box.label(text=f"{obj.get('dresg_source_format', '?')}, {obj.get('dresg_axis_conversion', '?')}")
+        axes = AXIS_LABELS.get(obj.get("dresg_axis_conversion"), "?")
+        box.label(text=f"{obj.get('dresg_source_format', '?')}, axes: {axes}")
         if "dresg_stylize_settings" in obj:
             box.label(text="Stylized", icon="BRUSH_DATA")
 
@@ -151,11 +154,11 @@ class DRESG_PT_style_advanced(ChildPanel, bpy.types.Panel):
         layout = self.layout
         layout.use_property_split = True
         settings = context.scene.dresg
-        for name in ("post_steps", "max_views", "render_scale", "sh_rest", "seed"):
+        for name in ("post_steps", "max_views", "fit_resolution", "render_scale", "sh_rest", "seed"):
             layout.prop(settings, name)
-        render = context.scene.render
-        scale = settings.render_scale * render.resolution_percentage / 100.0
-        layout.label(text=f"Fitting at {round(render.resolution_x * scale)} x {round(render.resolution_y * scale)} px")
+        width, height = fit_size(context.scene)
+        width, height = max(1, round(width * settings.render_scale)), max(1, round(height * settings.render_scale))
+        layout.label(text=f"Fitting at {width} x {height} px ({width * height / 1e6:.2f} MP a view)", icon="INFO")
 
 
 class DRESG_PT_views(ChildPanel, bpy.types.Panel):
@@ -182,6 +185,7 @@ class DRESG_PT_views(ChildPanel, bpy.types.Panel):
         row.prop(settings, "orbit_elevation")
         column.prop(settings, "orbit_fov")
         column.operator("dresg.add_orbit_cameras", icon="CAMERA_DATA")
+        layout.operator("dresg.import_cameras", icon="OUTLINER_OB_CAMERA")
 
 
 class DRESG_PT_display(ChildPanel, bpy.types.Panel):
@@ -196,8 +200,12 @@ class DRESG_PT_display(ChildPanel, bpy.types.Panel):
             layout.label(text="The splat preview modifier was removed", icon="ERROR")
             return
         items = modifier.node_group.interface.items_tree
-        for name in (INPUT_SHAPE, INPUT_SCALE, INPUT_MIN_OPACITY, INPUT_MAX_SPLATS, INPUT_SOLID):
-            layout.prop(modifier, f'["{items[name].identifier}"]', text=name)
+        for name in (INPUT_SHAPE, INPUT_SCALE, INPUT_MIN_OPACITY, INPUT_MAX_SPLATS, INPUT_SOLID, INPUT_SOFT):
+            if name in items:
+                layout.prop(modifier, f'["{items[name].identifier}"]', text=name)
+        soft = INPUT_SOFT in items and modifier[items[INPUT_SOFT].identifier]
+        if soft and context.scene.render.engine == "BLENDER_WORKBENCH":
+            _wrapped(layout, "Workbench renders soft splats without colour: render with EEVEE", icon="INFO")
         shading = context.space_data.shading if context.space_data and context.space_data.type == "VIEW_3D" else None
         if shading is not None and shading.type == "SOLID":
             layout.prop(shading, "color_type", text="Solid Colour")

@@ -1,0 +1,170 @@
+"""What an artist meets in Blender (issue 10): words, camera import and clipping, Max Views, the fit
+resolution, the y-up conversion and a Stylize button that says why it is grey. bpy module, no stylization."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dresg_addon import splat_mesh as sm
+from dresg_addon.camera_io import write_cameras_json
+from dresg_addon.io import write_scene
+from dresg_addon.orbit import orbit_cameras
+from dresg_addon.scene import GaussianScene
+
+bpy = pytest.importorskip("bpy")
+from mathutils import Vector  # noqa: E402  (comes with bpy)
+
+pytestmark = pytest.mark.blender
+REPO = Path(__file__).resolve().parents[1]
+JARGON = ("w_c", "Sec.", "Eq.", "abar", "gamma", "OPENCV", "snr-", "\n")
+
+
+def _scene(n: int = 60, spread: float = 1.0, centre=(0.0, 0.0, 0.0), seed: int = 0) -> GaussianScene:
+    rng = np.random.default_rng(seed)
+    return GaussianScene(
+        means=(np.asarray(centre) + spread * rng.normal(size=(n, 3))).astype(np.float32),
+        log_scales=np.full((n, 3), np.log(0.05 * spread), np.float32),
+        quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        opacity_logits=np.full(n, 2.0, np.float32),
+        sh_dc=rng.normal(size=(n, 3)).astype(np.float32),
+    )
+
+
+def _import(tmp_path, scene: GaussianScene, **options):
+    write_scene(scene, tmp_path / "s.ply")
+    assert bpy.ops.dresg.import_splats(filepath=str(tmp_path / "s.ply"), **options) == {"FINISHED"}
+    return bpy.context.active_object
+
+
+def _descriptions(rna) -> list[tuple[str, str]]:
+    out = []
+    for prop in rna.properties:
+        if prop.identifier in {"rna_type", "name"}:
+            continue
+        out.append((prop.identifier, prop.description))
+        for item in getattr(prop, "enum_items", []):
+            out.append((f"{prop.identifier}:{item.identifier}", item.description))
+            out.append((f"{prop.identifier}:{item.identifier} label", item.name))
+    return out
+
+
+def test_every_setting_and_operator_speaks_to_an_artist(addon):
+    settings = bpy.types.Scene.bl_rna.properties["dresg"].fixed_type
+    texts = _descriptions(settings) + _descriptions(bpy.types.Object.bl_rna.properties["dresg_view"].fixed_type)
+    for name, cls in vars(bpy.types).items():
+        if name.startswith("DRESG_OT_"):
+            texts.append((name, cls.bl_rna.description))
+            texts += [(f"{name}.{k}", v) for k, v in _descriptions(cls.bl_rna)]
+    for name, text in texts:
+        assert text.strip(), f"{name} has no tooltip or label"
+        assert not any(word in text for word in JARGON), f"{name}: {text!r}"
+    schedule = settings.properties["schedule"]
+    assert all(item.name != item.identifier for item in schedule.enum_items)  # labels, not raw names
+    assert {item.name for item in settings.properties["preset"].enum_items} >= {"Standard", "Preview"}
+    assert addon.ui.panels.CATEGORY == "Stylize Gaussians"
+
+
+def test_stylize_is_grey_until_a_style_image_is_chosen(addon, tmp_path, monkeypatch):
+    monkeypatch.setattr(addon.operators.dependencies, "torch_available", lambda: True)
+    _import(tmp_path, _scene())
+    settings = bpy.context.scene.dresg
+    assert not bpy.ops.dresg.stylize.poll()
+    settings.style_path = str(tmp_path / "painting.jpg")
+    assert bpy.ops.dresg.stylize.poll()
+    settings.style_source = "IMAGE"
+    assert not bpy.ops.dresg.stylize.poll()
+    settings.style_image = bpy.data.images.new("painting", 4, 4)
+    assert bpy.ops.dresg.stylize.poll()
+
+
+def test_orbit_cameras_clip_to_the_scene_far_from_the_origin(addon, tmp_path):
+    # A scene 2000 units across sitting 3000 units away: Blender's default clip_end of 100 would show nothing.
+    obj = _import(tmp_path, _scene(spread=500.0, centre=(3000.0, 0.0, 0.0)))
+    obj.scale = (2.0, 2.0, 2.0)
+    bpy.context.view_layer.update()
+    bpy.ops.dresg.add_orbit_cameras(count=4)
+    box = np.array([tuple(obj.matrix_world @ Vector(corner)) for corner in obj.bound_box])
+    for camera_object in bpy.data.collections["DReSG Orbit Cameras"].objects:
+        position = np.array(camera_object.matrix_world.translation)
+        farthest = np.linalg.norm(box - position, axis=1).max()
+        assert camera_object.data.clip_end >= farthest
+        assert 0 < camera_object.data.clip_start <= camera_object.data.clip_end / 1e3
+
+
+def test_import_cameras_reproduces_the_file_and_sets_the_render_size(addon, tmp_path):
+    scene = _scene()
+    cameras = orbit_cameras(scene, 3, width=160, height=120, fov_deg=40.0)
+    write_cameras_json(tmp_path / "cameras.json", cameras)
+    obj = _import(tmp_path, scene)
+    assert bpy.ops.dresg.import_cameras(filepath=str(tmp_path / "cameras.json")) == {"FINISHED"}
+    render = bpy.context.scene.render
+    assert (render.resolution_x, render.resolution_y, render.resolution_percentage) == (160, 120, 100)
+    views = addon.operators.views
+    objects = views.scene_cameras(bpy.context.scene)
+    assert len(objects) == 3 and all(o.dresg_view.use for o in objects)
+    back = views.engine_cameras(bpy.context.scene, obj, objects)
+    by_name = {c.name: c for c in cameras}
+    for camera in back:
+        original = by_name[camera.name]
+        assert (camera.width, camera.height) == (original.width, original.height)
+        np.testing.assert_allclose(
+            [camera.fx, camera.fy, camera.cx, camera.cy],
+            [original.fx, original.fy, original.cx, original.cy],
+            rtol=1e-5,
+        )
+        np.testing.assert_allclose(camera.world_to_camera, original.world_to_camera, atol=1e-4)
+    with pytest.raises(RuntimeError, match="nope.json"):
+        bpy.ops.dresg.import_cameras(filepath=str(tmp_path / "nope.json"))
+
+
+def test_max_views_applies_to_ticked_cameras(addon, tmp_path):
+    _import(tmp_path, _scene())
+    settings = bpy.context.scene.dresg
+    from dresg_addon.imageio import write_image
+
+    write_image(tmp_path / "style.png", np.full((8, 8, 3), 0.5, np.float32))
+    settings.style_path = str(tmp_path / "style.png")
+    bpy.ops.dresg.add_orbit_cameras(count=5)  # all ticked
+    prepare_job = addon.operators.stylize.prepare_job
+    settings.max_views = 2
+    run, note = prepare_job(bpy.context)
+    assert run.views is None and len(run.cameras) == 5  # the engine picks 2 of the 5 by coverage
+    assert "5 cameras ticked" in note and "Max Views is 2" in note
+    settings.max_views = 0
+    run, note = prepare_job(bpy.context)
+    assert run.views == [0, 1, 2, 3, 4] and note == ""
+
+
+def test_fit_resolution_defaults_to_the_presets_size(addon, tmp_path):
+    _import(tmp_path, _scene())
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 1920, 1080, 50
+    settings = scene.dresg
+    from dresg_addon.imageio import write_image
+
+    write_image(tmp_path / "style.png", np.full((8, 8, 3), 0.5, np.float32))
+    settings.style_path = str(tmp_path / "style.png")
+    bpy.ops.dresg.add_orbit_cameras(count=2)
+    stylize = addon.operators.stylize
+    assert settings.fit_resolution == "PRESET"
+    assert addon.operators.views.fit_size(scene) == (448, 252)
+    run, _ = stylize.prepare_job(bpy.context)
+    assert {(c.width, c.height) for c in run.cameras} == {(448, 252)}
+    settings.fit_resolution = "SCENE"
+    assert addon.operators.views.fit_size(scene) == (960, 540)
+    run, _ = stylize.prepare_job(bpy.context)
+    assert {(c.width, c.height) for c in run.cameras} == {(960, 540)}
+
+
+def test_y_up_files_stand_upright(addon, tmp_path):
+    # A column of splats along the file's +y: with the y-up conversion it points along Blender's +z.
+    scene = _scene(n=20)
+    scene.means[:] = np.stack([np.zeros(20), np.linspace(0.0, 2.0, 20), np.zeros(20)], 1)
+    obj = _import(tmp_path, scene, axis_conversion="Y_UP_TO_BLENDER")
+    world = np.array(obj.matrix_world)
+    tip = world[:3, :3] @ scene.means[-1]
+    np.testing.assert_allclose(tip, [0.0, 0.0, 2.0], atol=1e-6)
+    np.testing.assert_allclose(sm.local_up(world), [0.0, 1.0, 0.0], atol=1e-6)  # float32 world matrix
+    assert obj["dresg_axis_conversion"] == "Y_UP_TO_BLENDER"
+    assert sm.AXIS_LABELS["Y_UP_TO_BLENDER"] == "Y up"
