@@ -570,3 +570,60 @@ def _llff_image_names(root: Path, count: int, factor: float | None) -> list[str]
             if len(names) == count:
                 return names
     return [f"{index:03d}" for index in range(count)]
+
+
+CAMERA_FILE_DEPTH = 2  # graphdeco output: MODEL/cameras.json beside MODEL/point_cloud/iteration_N/point_cloud.ply
+
+
+def find_capture_cameras(scene_path: str | os.PathLike) -> Path | None:
+    """The capture's camera file or folder near a scene file, or None.
+
+    Looks in the scene's folder and up to two folders above it (where 3DGS training writes
+    ``cameras.json``) for ``cameras.json``, a COLMAP model (``sparse/0``, ``sparse``) or
+    ``poses_bounds.npy``; the nearest folder wins.
+    """
+    folder = Path(scene_path).resolve().parent
+    for _ in range(CAMERA_FILE_DEPTH + 1):
+        for candidate in (folder / "cameras.json", folder / "poses_bounds.npy"):
+            if candidate.is_file():
+                return candidate
+        if find_colmap_model(folder, required=False) is not None:
+            return folder
+        if folder.parent == folder:
+            break
+        folder = folder.parent
+    return None
+
+
+def mean_camera_up(cameras: list[Camera]) -> np.ndarray:  # [3] unit vector, world frame
+    """The cameras' average up direction in the world (OpenCV cameras look along +z with y down)."""
+    if not cameras:
+        raise CameraError("no cameras to take an up direction from")
+    up = np.sum([-np.linalg.inv(camera.world_to_camera)[:3, 1] for camera in cameras], axis=0)
+    norm = np.linalg.norm(up)
+    if not np.isfinite(norm) or norm < 1e-9 * len(cameras):
+        raise CameraError("the cameras' up directions cancel out (no common up)")
+    return up / norm
+
+
+def detect_axes(scene_path: str | os.PathLike) -> tuple[str, str]:
+    """Which way is up in a scene file: a key of ``splat_mesh.AXIS_CONVERSIONS`` and why, in words.
+
+    From the capture's cameras near the file (:func:`find_capture_cameras`) when there are any: the
+    conversion that turns their average up closest to Blender's +Z. Otherwise OpenCV / COLMAP (y down),
+    what 3DGS training from COLMAP produces; the splats alone do not say which way is up.
+    """
+    from .errors import DresgError
+    from .splat_mesh import AXIS_LABELS, axis_conversion_for_up
+
+    found = find_capture_cameras(scene_path)
+    if found is not None:
+        try:
+            key = axis_conversion_for_up(mean_camera_up(load_cameras(found)))
+            return key, f"{AXIS_LABELS[key]}, from the cameras in {found.name}"
+        except DresgError as error:
+            return "OPENCV_TO_BLENDER", f"{AXIS_LABELS['OPENCV_TO_BLENDER']}, the usual (cameras unreadable: {error})"
+    return (
+        "OPENCV_TO_BLENDER",
+        f"{AXIS_LABELS['OPENCV_TO_BLENDER']}, the usual for 3DGS captures (no cameras found beside the file)",
+    )

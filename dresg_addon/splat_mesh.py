@@ -278,6 +278,14 @@ AXIS_CONVERSIONS: dict[str, np.ndarray] = {
     "Y_UP_TO_BLENDER": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
     "NONE": np.eye(3),  # z up, as Blender
 }
+
+
+def axis_conversion_for_up(up) -> str:
+    """The key of :data:`AXIS_CONVERSIONS` that turns the file's ``up`` direction ([3]) closest to Blender's +Z."""
+    up = np.asarray(up, dtype=np.float64)
+    return max(AXIS_CONVERSIONS, key=lambda key: float((AXIS_CONVERSIONS[key] @ up)[2]))
+
+
 AXIS_LABELS = {"OPENCV_TO_BLENDER": "OpenCV / COLMAP (y down)", "Y_UP_TO_BLENDER": "Y up", "NONE": "Z up (as Blender)"}
 
 # Flat splats are drawn as disks in the instance's XY plane, so each splat's smallest axis must

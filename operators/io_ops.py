@@ -25,6 +25,11 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
         "(it only sets the object's rotation)",
         items=(
             (
+                "AUTO",
+                "Automatic",
+                "From the capture's cameras beside the file (cameras.json, COLMAP, LLFF), else OpenCV",
+            ),
+            (
                 "OPENCV_TO_BLENDER",
                 "OpenCV / COLMAP (y down)",
                 "Captures trained with COLMAP cameras (most 3DGS scenes)",
@@ -32,7 +37,7 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
             ("Y_UP_TO_BLENDER", "Y Up", "y up, z towards the viewer (OpenGL, glTF, many exported models)"),
             ("NONE", "Z Up (as Blender)", "The file's coordinates unchanged"),
         ),
-        default="OPENCV_TO_BLENDER",
+        default="AUTO",
     )
     shape: bpy.props.EnumProperty(
         name="Splat Shape",
@@ -80,6 +85,7 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
     )
 
     def execute(self, context):
+        from ..dresg_addon.camera_io import detect_axes
         from ..dresg_addon.io import InvalidSplatsWarning, read_scene_detailed
 
         start = time.perf_counter()
@@ -87,13 +93,16 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", InvalidSplatsWarning)
                 result = read_scene_detailed(self.filepath, drop_invalid=self.drop_invalid)
+            axes, axes_reason = self.axis_conversion, ""
+            if axes == "AUTO":
+                axes, axes_reason = detect_axes(self.filepath)
             obj = create_splat_object(
                 context,
                 result.scene,
                 bpy.path.display_name_from_filepath(self.filepath),
                 source_path=self.filepath,
                 source_format=result.format.value,
-                axis_conversion=self.axis_conversion,
+                axis_conversion=axes,
                 shape=self.shape,
                 scale_factor=self.scale_factor,
                 min_opacity=self.min_opacity,
@@ -113,6 +122,8 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
             context.scene.view_settings.view_transform = "Standard"
         seconds = time.perf_counter() - start
         message = f"Imported {len(result.scene)} splats ({result.format.value}) as '{obj.name}' in {seconds:.2f} s"
+        if axes_reason:
+            message += f"; axes: {axes_reason}"
         if result.dropped:
             self.report({"WARNING"}, f"{message}; dropped {result.dropped} invalid splats")
         else:

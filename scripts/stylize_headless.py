@@ -21,7 +21,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "stylize_gaussians"
-AXES = {"opencv": "OPENCV_TO_BLENDER", "y-up": "Y_UP_TO_BLENDER", "z-up": "NONE", "none": "NONE"}
+AXES = {"auto": "AUTO", "opencv": "OPENCV_TO_BLENDER", "y-up": "Y_UP_TO_BLENDER", "z-up": "NONE", "none": "NONE"}
 OVERRIDES = {  # command-line option -> panel setting
     "stages": "stages",
     "fit_steps": "fit_steps",
@@ -104,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1 if exit_.code else 0
     import bpy
 
+    from dresg_addon.errors import DresgError
+
     try:
         if args.blend:
             bpy.ops.wm.open_mainfile(filepath=args.blend)
@@ -112,7 +114,14 @@ def main(argv: list[str] | None = None) -> int:
             print("[stylize] no .blend: starting from an empty scene")
         load_addon()
         scene = bpy.context.scene
-        bpy.ops.dresg.import_splats(filepath=args.ply, axis_conversion=AXES[args.axes])
+        axes = AXES[args.axes]
+        if axes == "AUTO" and args.cameras:  # the views' own up
+            from dresg_addon.camera_io import load_cameras, mean_camera_up
+            from dresg_addon.splat_mesh import AXIS_LABELS, axis_conversion_for_up
+
+            axes = axis_conversion_for_up(mean_camera_up(load_cameras(args.cameras)))
+            print(f"[stylize] axes: {AXIS_LABELS[axes]}, from the cameras in {args.cameras}")
+        bpy.ops.dresg.import_splats(filepath=args.ply, axis_conversion=axes)
         settings = scene.dresg
         settings.preset = args.preset
         for option, field in OVERRIDES.items():
@@ -136,6 +145,9 @@ def main(argv: list[str] | None = None) -> int:
         bpy.ops.dresg.export_splats(filepath=args.out)
     except RuntimeError as error:  # an operator reported an error (its message says what)
         print(f"error: {str(error).strip()}", file=sys.stderr)
+        return 2
+    except DresgError as error:  # the camera file, read here for its up direction
+        print(f"error: {error}", file=sys.stderr)
         return 2
     print(f"[stylize] wrote {args.out}")
     return 0

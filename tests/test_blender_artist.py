@@ -168,3 +168,13 @@ def test_y_up_files_stand_upright(addon, tmp_path):
     np.testing.assert_allclose(sm.local_up(world), [0.0, 1.0, 0.0], atol=1e-6)  # float32 world matrix
     assert obj["dresg_axis_conversion"] == "Y_UP_TO_BLENDER"
     assert sm.AXIS_LABELS["Y_UP_TO_BLENDER"] == "Y up"
+
+
+def test_automatic_axes_follow_the_cameras_beside_the_file(addon, tmp_path):
+    scene = _scene()
+    write_cameras_json(tmp_path / "cameras.json", orbit_cameras(scene, 3, up=(0.0, 1.0, 0.0)))
+    obj = _import(tmp_path, scene)  # Axes: Automatic, the default
+    assert obj["dresg_axis_conversion"] == "Y_UP_TO_BLENDER"
+    (tmp_path / "cameras.json").unlink()
+    obj = _import(tmp_path, scene)
+    assert obj["dresg_axis_conversion"] == "OPENCV_TO_BLENDER"

@@ -22,7 +22,10 @@ from dresg_addon.blender_camera import (
 )
 from dresg_addon.camera import Camera, look_at
 from dresg_addon.camera_io import (
+    detect_axes,
+    find_capture_cameras,
     load_cameras,
+    mean_camera_up,
     quaternion_to_rotation,
     read_cameras_json,
     read_colmap,
@@ -731,3 +734,41 @@ def test_clip_distances_cover_the_box_at_any_scale():
     point = Camera(64, 48, 50.0, 50.0, 32.0, 24.0, look_at([0.0, 0.0, -1.0], [0.0, 0.0, 0.0]))
     with pytest.raises(CameraError, match="no clip range"):
         clip_distances(point, point.center, point.center)
+
+
+def test_up_axis_comes_from_the_capture_cameras(tmp_path):
+    from dresg_addon.splat_mesh import axis_conversion_for_up
+
+    scene = GaussianScene(
+        means=np.random.default_rng(0).normal(size=(50, 3)).astype(np.float32),
+        log_scales=np.full((50, 3), -2.0, np.float32),
+        quats=np.tile(np.float32([1, 0, 0, 0]), (50, 1)),
+        opacity_logits=np.zeros(50, np.float32),
+        sh_dc=np.zeros((50, 3), np.float32),
+    )
+    # graphdeco's output layout: MODEL/cameras.json, MODEL/point_cloud/iteration_N/point_cloud.ply
+    ply = tmp_path / "model" / "point_cloud" / "iteration_7000" / "point_cloud.ply"
+    ply.parent.mkdir(parents=True)
+    ply.write_bytes(b"")
+    assert find_capture_cameras(ply) is None
+    assert detect_axes(ply)[0] == "OPENCV_TO_BLENDER" and "no cameras found" in detect_axes(ply)[1]
+
+    y_up = orbit_cameras(scene, 4, up=(0.0, 1.0, 0.0))
+    write_cameras_json(tmp_path / "model" / "cameras.json", y_up)
+    assert find_capture_cameras(ply) == tmp_path / "model" / "cameras.json"
+    np.testing.assert_allclose(mean_camera_up(y_up), [0.0, 1.0, 0.0], atol=1e-9)
+    key, reason = detect_axes(ply)
+    assert key == "Y_UP_TO_BLENDER" and "cameras.json" in reason
+    write_cameras_json(tmp_path / "model" / "cameras.json", orbit_cameras(scene, 4))  # OpenCV: y down
+    assert detect_axes(ply)[0] == "OPENCV_TO_BLENDER"
+    write_cameras_json(tmp_path / "model" / "cameras.json", orbit_cameras(scene, 4, up=(0.0, 0.0, 1.0)))
+    assert detect_axes(ply)[0] == "NONE"
+    (tmp_path / "model" / "cameras.json").write_text("[]")  # unreadable: the usual frame, and why
+    key, reason = detect_axes(ply)
+    assert key == "OPENCV_TO_BLENDER" and "unreadable" in reason
+
+    # The bonsai's published viewing pose: up (0.02, -0.76, -0.65) in its COLMAP frame.
+    assert axis_conversion_for_up([0.01933, -0.7583, -0.65161]) == "OPENCV_TO_BLENDER"
+    flipped = [look_at([0.0, 0.0, -3.0], [0.0, 0.0, 0.0], up=(0.0, s, 0.0)) for s in (1.0, -1.0)]
+    with pytest.raises(CameraError, match="cancel out"):
+        mean_camera_up([Camera(8, 8, 8.0, 8.0, 4.0, 4.0, w2c) for w2c in flipped])
