@@ -96,13 +96,27 @@ def _scene_tensors(scene: GaussianScene):
     return t(scene.means), t(scene.quats), t(scene.log_scales), t(scene.opacity_logits)
 
 
-def visibility_matrix(scene: GaussianScene, cameras: Sequence[Camera], config: StylizeConfig) -> torch.Tensor:
-    """w [V, N] (sparse COO): each Gaussian's depth-consistent visible weight sum_p T alpha in each view (Sec. 4.3)."""
+def visibility_matrix(
+    scene: GaussianScene,
+    cameras: Sequence[Camera],
+    config: StylizeConfig,
+    *,
+    progress: Callable[[int, int], None] | None = None,
+    cancel: threading.Event | None = None,
+) -> torch.Tensor:
+    """w [V, N] (sparse COO): each Gaussian's depth-consistent visible weight sum_p T alpha in each view (Sec. 4.3).
+
+    ``progress(done, total)`` is called after each view; setting ``cancel`` stops with CancelledError.
+    """
     means, quats, log_scales, logits = _scene_tensors(scene)
     colors = torch.zeros_like(means)
     rows, cols, vals = [], [], []
     settings = _raster_settings(config)
     for v, camera in enumerate(cameras):
+        if cancel is not None and cancel.is_set():
+            raise CancelledError("view selection cancelled")
+        if progress is not None:
+            progress(v, len(cameras))
         with torch.no_grad():
             out = render(means, quats, log_scales, logits, colors, camera, settings, visibility="depth_consistent")
         nz = torch.nonzero(out.visibility > 0).squeeze(-1)
@@ -114,13 +128,25 @@ def visibility_matrix(scene: GaussianScene, cameras: Sequence[Camera], config: S
     return torch.sparse_coo_tensor(index, torch.cat(vals), size, check_invariants=False).coalesce()
 
 
-def select_active_views(scene: GaussianScene, cameras: Sequence[Camera], config: StylizeConfig) -> ActiveViews:
-    """Sec. 4.3: greedy capped-coverage selection (Eqs. 13-15) on the rasterizer's visibility weights."""
+def select_active_views(
+    scene: GaussianScene,
+    cameras: Sequence[Camera],
+    config: StylizeConfig,
+    *,
+    progress: Callable[[int, int], None] | None = None,
+    cancel: threading.Event | None = None,
+) -> ActiveViews:
+    """Sec. 4.3: greedy capped-coverage selection (Eqs. 13-15) on the rasterizer's visibility weights.
+
+    ``progress`` and ``cancel`` as for :func:`visibility_matrix` (one render per camera is the cost).
+    """
     from .views import ViewSelectionSettings, capped_coverage, select_views, target_support
 
     if not cameras:
         raise CameraError("no cameras: add cameras to the scene, give a cameras file, or use orbit cameras")
-    w = visibility_matrix(scene, _render_cameras(cameras, config.render_scale), config)
+    w = visibility_matrix(
+        scene, _render_cameras(cameras, config.render_scale), config, progress=progress, cancel=cancel
+    )
     settings = ViewSelectionSettings(
         min_support=config.w_min,
         target_fraction=config.rho,

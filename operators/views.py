@@ -5,6 +5,8 @@ is respected) by :mod:`dresg_addon.blender_camera`; the render resolution is the
 """
 
 import os
+import threading
+import traceback
 
 import bpy
 import numpy as np
@@ -13,6 +15,7 @@ from mathutils import Matrix
 
 from ..dresg_addon import blender_camera
 from ..dresg_addon.errors import DresgError
+from .job import tag_redraw
 from .splat_object import is_splat_object, scene_from_object
 
 ORBIT_COLLECTION = "DReSG Orbit Cameras"
@@ -116,12 +119,67 @@ def _splat_poll(cls, context) -> bool:
     return True
 
 
+class SelectionJob:
+    """View selection on a worker thread: the splats and cameras are read on the main thread first."""
+
+    def __init__(self, splats, cameras, config, camera_names: list[str]) -> None:
+        self.camera_names = camera_names
+        self.fraction, self.text = 0.0, f"Rendering visibility 0/{len(cameras)}"
+        self.result = None
+        self.error = ""
+        self.cancelled = False
+        self.cancel = threading.Event()
+        self._inputs = (splats, cameras, config)
+        self._thread = threading.Thread(target=self._work, name="dresg-select-views", daemon=True)
+
+    @property
+    def done(self) -> bool:
+        return not self._thread.is_alive() and self._inputs is None
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def join(self, timeout: float | None = None) -> None:
+        self._thread.join(timeout)
+
+    def _progress(self, done: int, total: int) -> None:
+        self.fraction, self.text = done / max(total, 1), f"Rendering visibility {done + 1}/{total}"
+        tag_redraw()
+
+    def _work(self) -> None:
+        from ..dresg_addon.errors import CancelledError
+        from ..dresg_addon.pipeline import select_active_views
+
+        splats, cameras, config = self._inputs
+        try:
+            self.result = select_active_views(splats, cameras, config, progress=self._progress, cancel=self.cancel)
+        except CancelledError:
+            self.cancelled = True
+        except DresgError as error:
+            self.error = str(error)
+        except Exception as error:  # an engine bug must reach the user, not only the console
+            traceback.print_exc()
+            self.error = f"{type(error).__name__}: {error}"
+        finally:
+            self._inputs = None
+
+
+_selection: SelectionJob | None = None
+
+
+def current_selection() -> SelectionJob | None:
+    """The view selection running on a worker thread, if any (the panel shows its progress)."""
+    return _selection if _selection is not None and not _selection.done else None
+
+
 class DRESG_OT_select_views(bpy.types.Operator):
     """Tick the cameras that together see the most of the splats (up to Max Views), and show each one's share"""
 
     bl_idname = "dresg.select_views"
     bl_label = "Select Views by Coverage"
     bl_options = {"REGISTER", "UNDO"}
+
+    _timer = None
 
     @classmethod
     def poll(cls, context):
@@ -135,29 +193,76 @@ class DRESG_OT_select_views(bpy.types.Operator):
         if not torch_available():
             cls.poll_message_set("PyTorch is not installed (see the add-on preferences)")
             return False
+        if current_selection() is not None:
+            cls.poll_message_set("Views are being selected")
+            return False
         return True
 
-    def execute(self, context):
-        from ..dresg_addon.pipeline import select_active_views
-
+    def _job(self, context) -> SelectionJob:
         obj, scene = context.active_object, context.scene
-        settings = scene.dresg
         objects = scene_cameras(scene)
+        cameras = fitting_cameras(scene, obj, objects)
+        return SelectionJob(scene_from_object(obj), cameras, scene.dresg.config(), [o.name for o in objects])
+
+    def execute(self, context):
         try:
-            cameras = fitting_cameras(scene, obj, objects)
-            selection = select_active_views(scene_from_object(obj), cameras, settings.config())
+            job = self._job(context)
         except DresgError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
+        job.start()
+        job.join()
+        return self._finish(context, job)
+
+    def invoke(self, context, event):
+        global _selection
+        if bpy.app.background:
+            return self.execute(context)
+        try:
+            _selection = self._job(context)
+        except DresgError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        _selection.start()
+        self._timer = context.window_manager.event_timer_add(0.2, window=context.window)
+        context.window_manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type == "ESC" and event.value == "PRESS":
+            _selection.cancel.set()
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER" or not _selection.done:
+            return {"PASS_THROUGH"}
+        context.window_manager.event_timer_remove(self._timer)
+        tag_redraw()
+        return self._finish(context, _selection)
+
+    def cancel(self, context):  # Blender ended the operator (file loaded, window closed)
+        _selection.cancel.set()
+        context.window_manager.event_timer_remove(self._timer)
+
+    def _finish(self, context, job: SelectionJob):
+        if job.cancelled:
+            self.report({"WARNING"}, "View selection cancelled: the ticks are unchanged")
+            return {"CANCELLED"}
+        if job.error:
+            self.report({"ERROR"}, job.error)
+            return {"CANCELLED"}
+        by_name = {obj.name: obj for obj in scene_cameras(context.scene)}
+        objects = [by_name.get(name) for name in job.camera_names]
+        selection = job.result
         picks = {index: order + 1 for order, index in enumerate(selection.indices)}
         for index, camera_object in enumerate(objects):
+            if camera_object is None:  # deleted while the selection ran
+                continue
             view = camera_object.dresg_view
             view.use = index in picks
             view.pick = picks.get(index, 0)
             view.coverage = float(selection.per_view_coverage[index])
         total = selection.coverage[-1] if selection.coverage else 0.0
         message = f"Selected {len(picks)} of {len(objects)} views: coverage {100 * total:.2f}% ({selection.reason})"
-        blind = [objects[index].name for index in selection.blind]
+        blind = [job.camera_names[index] for index in selection.blind]
         if blind:
             self.report({"WARNING"}, f"{message}; {len(blind)} see none of the splats: {', '.join(blind[:5])}")
         else:

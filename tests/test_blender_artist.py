@@ -178,3 +178,29 @@ def test_automatic_axes_follow_the_cameras_beside_the_file(addon, tmp_path):
     (tmp_path / "cameras.json").unlink()
     obj = _import(tmp_path, scene)
     assert obj["dresg_axis_conversion"] == "OPENCV_TO_BLENDER"
+
+
+def test_view_selection_runs_on_a_worker_thread_and_cancels(addon, tmp_path):
+    pytest.importorskip("torch")
+    views = addon.operators.views
+    obj = _import(tmp_path, _scene())
+    bpy.ops.dresg.add_orbit_cameras(count=4)
+    scene = bpy.context.scene
+    objects = views.scene_cameras(scene)
+    cameras = views.fitting_cameras(scene, obj, objects)
+    splats = addon.operators.splat_object.scene_from_object(obj)
+
+    job = views.SelectionJob(splats, cameras, scene.dresg.config(), [o.name for o in objects])
+    job.start()
+    job.join(120)
+    assert job.done and not job.error and not job.cancelled
+    expected = addon.dresg_addon.pipeline.select_active_views(splats, cameras, scene.dresg.config())
+    assert job.result.indices == expected.indices and job.result.per_view_coverage == expected.per_view_coverage
+    assert job.fraction == pytest.approx(3 / 4)  # the last view's progress report
+
+    stopped = views.SelectionJob(splats, cameras, scene.dresg.config(), [o.name for o in objects])
+    stopped.cancel.set()
+    stopped.start()
+    stopped.join(120)
+    assert stopped.done and stopped.cancelled and stopped.result is None
+    assert views.current_selection() is None

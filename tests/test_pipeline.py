@@ -574,6 +574,19 @@ def test_select_active_views_orders_views_by_coverage_and_finds_blind_cameras():
     limited = select_active_views(scene, cameras, TINY.with_(max_views=2))
     assert limited.indices == chosen.indices[:2] and limited.reason == "view limit reached"
 
+    # Progress after each view's render; a cancel stops before the next one.
+    seen = []
+    select_active_views(scene, cameras, TINY, progress=lambda done, total: seen.append((done, total)))
+    assert seen == [(v, 5) for v in range(5)]
+    cancel = threading.Event()
+
+    def cancel_after_two(done, total):
+        if done == 1:
+            cancel.set()
+
+    with pytest.raises(CancelledError, match="view selection cancelled"):
+        select_active_views(scene, cameras, TINY, progress=cancel_after_two, cancel=cancel)
+
 
 def test_cameras_that_see_nothing_are_an_error():
     scene = sphere_scene(n=100)

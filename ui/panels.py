@@ -17,7 +17,7 @@ from ..operators.splat_object import (
     splat_modifier,
 )
 from ..operators.stylize import addon_preferences
-from ..operators.views import fit_size, scene_cameras
+from ..operators.views import current_selection, fit_size, scene_cameras
 
 CATEGORY = "Stylize Gaussians"
 
@@ -176,7 +176,11 @@ class DRESG_PT_views(ChildPanel, bpy.types.Panel):
             row.operator("dresg.tick_views", text="None").use = False
             ticked = sum(obj.dresg_view.use for obj in cameras)
             layout.label(text=f"{ticked} of {len(cameras)} ticked" if ticked else "None ticked: all cameras are used")
-            layout.operator("dresg.select_views", icon="VIEWZOOM")
+            selecting = current_selection()
+            if selecting is not None:
+                layout.progress(factor=selecting.fraction, type="BAR", text=f"{selecting.text} (Esc cancels)")
+            else:
+                layout.operator("dresg.select_views", icon="VIEWZOOM")
         else:
             layout.label(text="No cameras: stylizing uses an orbit ring", icon="INFO")
         column = layout.column(align=True)
