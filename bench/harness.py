@@ -4,10 +4,13 @@
 from __future__ import annotations
 
 import json
+import os
 import platform
 import resource
 import subprocess
 import sys
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -20,10 +23,38 @@ def peak_rss_bytes() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
 
 
+THREAD_SETTINGS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
+LOADS = {  # what else runs on the machine while a loaded case is measured
+    "python": "while True: pass",  # one core taken by a process that never waits
+    # another torch job doing small ops with torch's default threads, which spin between ops
+    "torch": "import torch\na = torch.randn(64, 64)\nwhile True:\n    b = a @ a + a.sin()",
+}
+
+
+def fresh_environment() -> dict:
+    """This environment without the thread settings the engine chose for this process (a worker chooses its own)."""
+    return {key: value for key, value in os.environ.items() if key not in THREAD_SETTINGS}
+
+
+@contextmanager
+def background_load(kind: str, settle_s: float = 2.0):
+    """Run one :data:`LOADS` process for the duration of the block (started and stopped here)."""
+    process = subprocess.Popen([sys.executable, "-c", LOADS[kind]], env=fresh_environment())
+    try:
+        time.sleep(settle_s)  # let it start (torch takes a second to import)
+        yield
+    finally:
+        process.kill()
+        process.wait()
+
+
 def call_worker(script: str, spec: dict) -> dict:
     """Run ``script --worker SPEC`` in a fresh interpreter; ``{'error': ...}`` when it fails (e.g. killed for memory)."""
     done = subprocess.run(
-        [sys.executable, str(Path(script).resolve()), "--worker", json.dumps(spec)], capture_output=True, text=True
+        [sys.executable, str(Path(script).resolve()), "--worker", json.dumps(spec)],
+        capture_output=True,
+        text=True,
+        env=fresh_environment(),
     )
     if done.returncode != 0:
         tail = (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]

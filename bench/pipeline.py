@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """Benchmark of the whole DReSG loop (issue 3, section 8). Not a test: it prints a table.
 
-    .venv/bin/python bench/pipeline.py [--quick] [--markdown out.md] [--threads N]
+    .venv/bin/python bench/pipeline.py [--quick] [--markdown out.md] [--threads N] [--loaded]
 
 The presets run with the default weight-free ``synth`` backend on the real bonsai (bonsai-7k-mini.splat,
 273k Gaussians, ../shared/data) with 16 orbit cameras at 448x320 and Van Gogh's Starry Night as the
@@ -238,17 +238,76 @@ def preset_table(rows: list[tuple[str, str, dict]]) -> list[str]:
     return out
 
 
+LOADED_TARGET = 2.0  # slowdown against quiet with one core taken
+
+
+def loaded_run(args) -> int:
+    """``--loaded``: the preview preset quiet and next to each of harness.LOADS, and the slowdowns."""
+    size = QUICK if args.quick else FULL
+    common = {**size, "threads": args.threads}
+    overrides = {**QUICK_OVERRIDES, "stages": 1} if args.quick else {}
+    started = time.perf_counter()
+    baseline = call_worker({"kind": "baseline", **common})
+    out = ["## Pipeline benchmark under load", "", *machine_lines(baseline), ""]
+    print("\n".join(out), flush=True)
+    rows = []
+    for kind in ("quiet", *harness.LOADS):
+        print(f"  running preview ({kind}) ...", file=sys.stderr, flush=True)
+        spec = {"kind": "preset", "preset": "preview", "overrides": overrides, **common}
+        if kind == "quiet":
+            rows.append((kind, call_worker(spec)))
+        else:
+            with harness.background_load(kind):
+                rows.append((kind, call_worker(spec)))
+    quiet = rows[0][1]
+    lines = [
+        "The `preview` preset on the same scene, quiet and while one other process runs (started and stopped by",
+        "the benchmark): `python`, a pure-Python busy loop (one core taken); `torch`, another torch job doing",
+        "small ops with torch's default threads, which spin between ops.",
+        "",
+        "| machine | proposals | fitting | total | slowdown |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for kind, result in rows:
+        if "error" in result or "error" in quiet:
+            lines.append(f"| {kind} | {result.get('error', quiet.get('error'))} | | | |")
+            continue
+        slowdown = result["total_s"] / quiet["total_s"]
+        lines.append(
+            f"| {kind} | {secs(result['proposals_s'])} | {secs(result['fitting_s'])} | {secs(result['total_s'])} "
+            f"| {slowdown:.2f}x |"
+        )
+    if "error" not in rows[1][1] and "error" not in quiet:
+        slowdown = rows[1][1]["total_s"] / quiet["total_s"]
+        lines.append(
+            f"- one core taken: {slowdown:.2f}x, target <= {LOADED_TARGET:g}x: {verdict(slowdown <= LOADED_TARGET)}"
+        )
+    lines += ["", f"Benchmark wall time: {secs(time.perf_counter() - started)}; load average after: {load_average()}."]
+    print("\n".join(lines), flush=True)
+    out += lines
+    if args.markdown:
+        Path(args.markdown).write_text("\n".join(out) + "\n", encoding="utf-8")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="smoke run: small scene, 4 small cameras, tiny schedules")
     parser.add_argument("--markdown", metavar="FILE", help="also write the report to FILE (markdown)")
     parser.add_argument("--threads", type=int, help="torch threads in every case (default: torch's own choice)")
     parser.add_argument("--no-sd15", action="store_true", help="skip the sd15 timing")
+    parser.add_argument(
+        "--loaded",
+        action="store_true",
+        help="instead: preview quiet, then while another process takes a core, then next to another torch job",
+    )
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
 
     if args.worker:
         return harness.run_worker(args.worker, WORKERS)
+    if args.loaded:
+        return loaded_run(args)
 
     from dresg_addon.config import PRESETS
 

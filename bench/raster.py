@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """Rasterizer benchmark (issue 2, section 5). Not a test: it prints tables.
 
-    .venv/bin/python bench/raster.py [--quick] [--markdown out.md] [--repeats 3] [--sizes 10000,100000]
+    .venv/bin/python bench/raster.py [--quick] [--markdown out.md] [--repeats 3] [--sizes 10000,100000] [--loaded]
 
 Two tables:
 
@@ -19,6 +19,10 @@ the interpreter and torch (the "baseline" line). Times are "median (best)" of ``
 after warm-up runs (fewer when one run is slow), with torch's default thread count unless
 ``--threads``. The load average is printed: on a shared machine the best run is the better guide to
 what the code can do, and one thread (``--threads 1``) is steadier than two that wait on each other.
+
+``--loaded`` adds a third table: the bonsai again while another process takes a core (a pure-Python
+busy loop) and while another torch job runs (its threads spin between ops), against quiet; target:
+at most 2x slower with one core taken.
 
 Targets on a 2-core CPU: bonsai forward+backward with geometry <= 0.5 s; colour-only step <= 30 ms;
 1M Gaussians within 8 GB. ``--quick`` is a smoke run (96x64, tiny scenes, one repeat, no bonsai).
@@ -430,6 +434,48 @@ def knob_section(knob_case: dict, name: str, repeats: int, quick: bool) -> list[
     ]
 
 
+LOADED_TARGET = 2.0  # slowdown against quiet with one core taken
+
+
+def loaded_section(quiet_cases: dict, common: dict, repeats: int, bonsai: bool) -> list[str]:
+    """The same case quiet and next to each of harness.LOADS: times and slowdowns."""
+    name, spec = ("bonsai", {"scene": "bonsai"}) if bonsai else ("random 100k", {"scene": "random", "n": 100_000})
+    quiet = quiet_cases.get("bonsai" if bonsai else "100k") or call_worker(
+        {"kind": "case", "repeats": repeats, **spec, **common}
+    )
+    rows = [("quiet", quiet)]
+    for kind in harness.LOADS:
+        print(f"  running {name} next to a {kind} load ...", file=sys.stderr, flush=True)
+        with harness.background_load(kind):
+            rows.append((kind, call_worker({"kind": "case", "repeats": repeats, **spec, **common})))
+    lines = [
+        "",
+        f"Under load: {name}, quiet and while one other process runs (started and stopped here): `python`, a",
+        "pure-Python busy loop (one core taken); `torch`, another torch job doing small ops with torch's default",
+        "threads, which spin between ops. Median of the timed runs; slowdown against quiet.",
+        "",
+        "| machine | forward | fwd+bwd with geometry | colour-only step | slowdown (fwd / fwd+bwd / colour) |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    keys = ("forward_s", "fwd_bwd_s", "colour_step_s")
+    for label, result in rows:
+        if "error" in result:
+            lines.append(f"| {label} | {result['error']} | | | |")
+            continue
+        medians = [statistics.median(result[key]) for key in keys]
+        base = [statistics.median(quiet[key]) for key in keys]
+        slow = " / ".join(f"{m / b:.2f}x" for m, b in zip(medians, base))
+        lines.append(f"| {label} | {medians[0]:.3f} s | {medians[1]:.3f} s | {1000 * medians[2]:.1f} ms | {slow} |")
+    python = rows[1][1]
+    if "error" not in python:
+        worst = max(statistics.median(python[key]) / statistics.median(quiet[key]) for key in keys)
+        lines.append(
+            f"- one core taken: worst slowdown {worst:.2f}x, target <= {LOADED_TARGET:g}x: {mark(worst <= LOADED_TARGET)}"
+        )
+    lines.append(f"- load average after: {load_average()}")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="smoke run: 96x64, tiny scenes, one repeat, no bonsai")
@@ -441,6 +487,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-knobs", action="store_true", help="skip the error-against-run-time table")
     parser.add_argument(
         "--threads", type=int, help="torch threads in every case (default: torch's own choice, the core count)"
+    )
+    parser.add_argument(
+        "--loaded",
+        action="store_true",
+        help="also measure the bonsai (random 100k without it) while another process takes a core",
     )
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -480,6 +531,11 @@ def main(argv: list[str] | None = None) -> int:
     ]
     print("\n".join(table), flush=True)
     out += table
+
+    if args.loaded:
+        section = loaded_section(dict(cases), common, repeats, have_bonsai and not args.quick)
+        print("\n".join(section), flush=True)
+        out += section
 
     if not args.no_knobs:
         if have_bonsai and not args.quick:

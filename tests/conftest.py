@@ -12,6 +12,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+# Tests compare runs bit for bit: keep torch's thread count fixed (tests/test_threads.py turns it back on).
+os.environ.setdefault("DRESG_ADAPTIVE_THREADS", "0")
+
 SHARED_DATA = Path(os.environ.get("DRESG_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
