@@ -220,7 +220,7 @@ def test_select_views_with_cameras_that_see_nothing_exits_2(files, tmp_path, cap
 
 
 def test_demo_command_writes_its_assets_and_before_after_images(tmp_path, monkeypatch, capsys):
-    """The demo's own scene, cameras and style with a tiny schedule and small images (a full demo takes ~30 s)."""
+    """The demo's own scene, cameras and style with a tiny schedule and small images (a full demo takes ~45 s)."""
     import dresg_addon.demo as demo
 
     real_cameras = demo.demo_cameras
@@ -249,5 +249,6 @@ def test_demo_command_writes_its_assets_and_before_after_images(tmp_path, monkey
     after = read_image(out / "views" / "orbit_000_after.png")
     assert before.shape == after.shape == (48, 64, 3) and np.abs(before - after).mean() > 0.01
     grid = read_image(out / "before_after.png")
-    assert grid.shape == (2 * 48, 3 * 64, 3)  # two novel views: before | after | style
+    assert grid.shape == (2 * 48, 4 * 64, 3)  # two novel views: before | colour transfer | after | style
     assert np.abs(grid[:, :64] - grid[:, 64:128]).mean() > 0.01
+    assert np.abs(grid[:, :64] - grid[:, 128:192]).mean() > 0.01

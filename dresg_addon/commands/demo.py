@@ -1,8 +1,10 @@
 """``python -m dresg_addon demo --out DIR``: the embedded default, end to end, with nothing downloaded.
 
 Makes the demo scene, cameras and style image, stylizes the scene, and writes the stylized PLY, the
-per-stage log, before/after images of every camera, and ``before_after.png``: before | after | style from
-four novel views (between the cameras the scene was stylized from).
+per-stage log, before/after images of every camera, and ``before_after.png``: before | colour transfer |
+after | style from four novel views (between the cameras the scene was stylized from). The colour
+transfer column is the baseline a stylization must beat: the paper's post stage alone, one covariance
+colour map from the base renders to the style (:func:`~dresg_addon.color_transfer.transfer_scene_colors`).
 """
 
 from __future__ import annotations
@@ -27,8 +29,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     import numpy as np
+    import torch
 
     from ..camera_io import write_cameras_json
+    from ..color_transfer import transfer_scene_colors
     from ..config import preset
     from ..demo import demo_cameras, demo_scene, demo_style_image
     from ..imageio import letterbox, write_image
@@ -68,11 +72,17 @@ def run(args) -> int:
         write_image(
             out / "views" / f"{camera.name}_after.png", render_scene(result.scene, camera, settings).rgb.numpy()
         )
+    base = [render_scene(scene, camera, settings) for camera in cameras]
+    transferred = transfer_scene_colors(
+        scene,
+        torch.stack([view.rgb.permute(2, 0, 1) for view in base]),
+        torch.stack([view.alpha for view in base]),
+        torch.from_numpy(np.ascontiguousarray(style.transpose(2, 0, 1))),
+    )
     rows = []
     for camera in demo_cameras(scene, n=args.views, azimuth_offset_deg=180.0 / args.views)[:4]:
-        before = render_scene(scene, camera, settings).rgb.numpy()
-        after = render_scene(result.scene, camera, settings).rgb.numpy()
-        rows.append(np.concatenate([before, after, letterbox(style, camera.width, camera.height)], 1))
+        columns = [render_scene(s, camera, settings).rgb.numpy() for s in (scene, transferred, result.scene)]
+        rows.append(np.concatenate([*columns, letterbox(style, camera.width, camera.height)], 1))
     write_image(out / "before_after.png", np.concatenate(rows, 0))
     print(f"wrote {out / 'stylized.ply'} and {out / 'before_after.png'} in {time.perf_counter() - started:.0f} s")
     return 0
