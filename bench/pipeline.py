@@ -241,6 +241,15 @@ def preset_table(rows: list[tuple[str, str, dict]]) -> list[str]:
 LOADED_TARGET = 2.0  # slowdown against quiet with one core taken
 
 
+def finish(out: list[str], lines: list[str], markdown: str | None) -> int:
+    """Print the last lines, and write the whole report when ``--markdown`` asked for it."""
+    print("\n".join(lines), flush=True)
+    out += lines
+    if markdown:
+        Path(markdown).write_text("\n".join(out) + "\n", encoding="utf-8")
+    return 0
+
+
 def loaded_run(args) -> int:
     """``--loaded``: the preview preset quiet and next to each of harness.LOADS, and the slowdowns."""
     size = QUICK if args.quick else FULL
@@ -283,11 +292,7 @@ def loaded_run(args) -> int:
             f"- one core taken: {slowdown:.2f}x, target <= {LOADED_TARGET:g}x: {verdict(slowdown <= LOADED_TARGET)}"
         )
     lines += ["", f"Benchmark wall time: {secs(time.perf_counter() - started)}; load average after: {load_average()}."]
-    print("\n".join(lines), flush=True)
-    out += lines
-    if args.markdown:
-        Path(args.markdown).write_text("\n".join(out) + "\n", encoding="utf-8")
-    return 0
+    return finish(out, lines, args.markdown)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -380,11 +385,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_sd15:
         lines += ["", *sd15_lines(args, common, cpu_run)]
     lines += ["", f"Benchmark wall time: {secs(time.perf_counter() - started)}."]
-    print("\n".join(lines), flush=True)
-    out += lines
-    if args.markdown:
-        Path(args.markdown).write_text("\n".join(out) + "\n", encoding="utf-8")
-    return 0
+    return finish(out, lines, args.markdown)
 
 
 def sd15_lines(args, common: dict, cpu_run: dict) -> list[str]:

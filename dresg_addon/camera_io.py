@@ -28,8 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from .camera import Camera
-from .errors import CameraError, ConfigError, with_path
+from .errors import CameraError, ConfigError, DresgError, with_path
 from .fileutil import atomic_write_bytes, irregular_file_problem
+from .splat_mesh import AXIS_LABELS, axis_conversion_for_up
 
 MAX_IMAGE_SIDE = 16384  # pixels; a camera wider or taller than this is refused on read (a 16k render is ~3 GB)
 ROTATION_TOLERANCE = 1e-3  # max |R^T R - I| accepted from files (rounded decimals), then projected
@@ -613,9 +614,6 @@ def detect_axes(scene_path: str | os.PathLike) -> tuple[str, str]:
     conversion that turns their average up closest to Blender's +Z. Otherwise OpenCV / COLMAP (y down),
     what 3DGS training from COLMAP produces; the splats alone do not say which way is up.
     """
-    from .errors import DresgError
-    from .splat_mesh import AXIS_LABELS, axis_conversion_for_up
-
     found = find_capture_cameras(scene_path)
     if found is not None:
         try:

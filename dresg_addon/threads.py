@@ -69,10 +69,10 @@ class CoreMonitor:
 
     def others_busy(self, min_interval_s: float = ADAPT_INTERVAL_S) -> float | None:
         """Cores other processes used on average since the last call, or None (too soon, or unknown)."""
-        if self._last is None:
-            return None
+        if self._last is None or time.monotonic() - self._last[0] < min_interval_s:
+            return None  # checked before reading /proc: this runs before every render and colour step
         now = self._sample()
-        if now is None or now[0] - self._last[0] < min_interval_s:
+        if now is None:
             return None
         (t0, busy0, own0), (t1, busy1, own1) = self._last, now
         self._last = now

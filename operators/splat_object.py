@@ -476,24 +476,33 @@ def _build_node_group(group) -> None:
     links.new(no_color.outputs[0], set_material.inputs["Geometry"])
     links.new(material.outputs[0], set_material.inputs["Material"])
 
-    instances = node("GeometryNodeInstanceOnPoints", 100, 100)
-    links.new(inputs.outputs["Geometry"], instances.inputs["Points"])
-    links.new(selection.outputs[0], instances.inputs["Selection"])
-    links.new(set_material.outputs[0], instances.inputs["Instance"])
-    links.new(rotation.outputs[0], instances.inputs["Rotation"])
-    links.new(scaled.outputs["Vector"], instances.inputs["Scale"])
+    def colour_instances(shape_geometry, scale_vector, y):
+        """A shape per visible splat, carrying only the colour: realizing copies every instance attribute
+        to each vertex of each splat, and the raw scene attributes would cost most of the time and memory."""
+        instances = node("GeometryNodeInstanceOnPoints", 100, y)
+        links.new(inputs.outputs["Geometry"], instances.inputs["Points"])
+        links.new(selection.outputs[0], instances.inputs["Selection"])
+        links.new(shape_geometry, instances.inputs["Instance"])
+        links.new(rotation.outputs[0], instances.inputs["Rotation"])
+        links.new(scale_vector, instances.inputs["Scale"])
+        geometry = instances.outputs[0]
+        for index, (mode, pattern) in enumerate(
+            (
+                ("Wildcard", "dresg_*"),
+                ("Exact", sm.OPACITY),
+                ("Exact", sm.SCALE),
+                ("Exact", sm.ROTATION),
+                ("Exact", ".*"),
+            )
+        ):
+            remove = node("GeometryNodeRemoveAttribute", 300 + 150 * index, y + 150)
+            remove.inputs["Pattern Mode"].default_value = mode
+            remove.inputs["Name"].default_value = pattern
+            links.new(geometry, remove.inputs["Geometry"])
+            geometry = remove.outputs[0]
+        return geometry
 
-    # Only the colour travels to the instances: realizing copies every instance attribute to each
-    # vertex of each splat, and the raw scene attributes would cost most of the time and memory.
-    geometry = instances.outputs[0]
-    for index, (mode, pattern) in enumerate(
-        (("Wildcard", "dresg_*"), ("Exact", sm.OPACITY), ("Exact", sm.SCALE), ("Exact", sm.ROTATION), ("Exact", ".*"))
-    ):
-        remove = node("GeometryNodeRemoveAttribute", 300 + 150 * index, 250)
-        remove.inputs["Pattern Mode"].default_value = mode
-        remove.inputs["Name"].default_value = pattern
-        links.new(geometry, remove.inputs["Geometry"])
-        geometry = remove.outputs[0]
+    geometry = colour_instances(set_material.outputs[0], scaled.outputs["Vector"], 100)
     realized = node("GeometryNodeRealizeInstances", 1050, 0)
     links.new(geometry, realized.inputs[0])
     solid_view = switch("GEOMETRY", inputs.outputs[INPUT_SOLID], geometry, realized.outputs[0], 1250, 100)
@@ -507,21 +516,7 @@ def _build_node_group(group) -> None:
     soft_scale = node("ShaderNodeVectorMath", -200, -300, operation="SCALE")
     links.new(scale_vec, soft_scale.inputs[0])
     soft_scale.inputs["Scale"].default_value = sm.SOFT_RADIUS
-    soft_instances = node("GeometryNodeInstanceOnPoints", 100, 600)
-    links.new(inputs.outputs["Geometry"], soft_instances.inputs["Points"])
-    links.new(selection.outputs[0], soft_instances.inputs["Selection"])
-    links.new(soft_shape.outputs[0], soft_instances.inputs["Instance"])
-    links.new(rotation.outputs[0], soft_instances.inputs["Rotation"])
-    links.new(soft_scale.outputs["Vector"], soft_instances.inputs["Scale"])
-    soft_geometry = soft_instances.outputs[0]
-    for index, (mode, pattern) in enumerate(
-        (("Wildcard", "dresg_*"), ("Exact", sm.OPACITY), ("Exact", sm.SCALE), ("Exact", sm.ROTATION), ("Exact", ".*"))
-    ):
-        remove = node("GeometryNodeRemoveAttribute", 300 + 150 * index, 650)
-        remove.inputs["Pattern Mode"].default_value = mode
-        remove.inputs["Name"].default_value = pattern
-        links.new(soft_geometry, remove.inputs["Geometry"])
-        soft_geometry = remove.outputs[0]
+    soft_geometry = colour_instances(soft_shape.outputs[0], soft_scale.outputs["Vector"], 500)
 
     viewport = switch("GEOMETRY", inputs.outputs[INPUT_SOLID], soft_geometry, realized.outputs[0], 1250, 300)
     render = switch("GEOMETRY", inputs.outputs[INPUT_SOFT], solid_view, soft_geometry, 1250, 500)
