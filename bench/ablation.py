@@ -15,8 +15,8 @@ space instead of RGB logits); and the residual-strength schedules fixed-1, fixed
 timestep-cosine against the SNR-balanced default.
 
 Pairs: the shared bonsai (orbit cameras) with two shared paintings when ../shared/data is present,
-else the built-in demo scene and painting. Metrics (``dresg_addon.metrics`` through
-``dresg_addon.report.ViewEvaluator``) on the novel views between the orbit cameras (covered pixels),
+else the built-in demo scene and painting. Metrics (``dresg_addon.evaluation.metrics`` through
+``dresg_addon.evaluation.report.ViewEvaluator``) on the novel views between the orbit cameras (covered pixels),
 averaged over the pairs: sliced
 Wasserstein distances of colours and 7x7 patches to the style (lower is better), SSIM and gradient
 structure to the base render (higher is better), masked RMSE of the exact warp for gap 1 and N/2
@@ -86,9 +86,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def base_config(args):
-    from dresg_addon.config import preset
-    from dresg_addon.errors import ConfigError
-    from dresg_addon.report import quick_config
+    from dresg_addon.evaluation.report import quick_config
+    from dresg_addon.method.config import preset
+    from dresg_addon.util.errors import ConfigError
 
     config = preset("preview", seed=args.seed)
     if args.quick:
@@ -128,7 +128,13 @@ def chosen_variants(args, proposal: str):
 
 
 def run(args) -> dict:
-    from dresg_addon.report import ReportOptions, ViewEvaluator, load_inputs, machine_description, stylize_with_log
+    from dresg_addon.evaluation.report import (
+        ReportOptions,
+        ViewEvaluator,
+        load_inputs,
+        machine_description,
+        stylize_with_log,
+    )
 
     machine = machine_description()
     config = base_config(args)
@@ -213,7 +219,7 @@ def main(argv=None) -> int:
     report = run(args)
     text = markdown(report)
     print(text)
-    from dresg_addon.fileutil import atomic_write_bytes
+    from dresg_addon.util.fileutil import atomic_write_bytes
 
     if args.markdown:
         atomic_write_bytes(args.markdown, (text + "\n").encode("utf-8"))

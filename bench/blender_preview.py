@@ -50,9 +50,9 @@ def compare(
     import bpy
     import torch
 
-    from dresg_addon.imageio import read_image
-    from dresg_addon.metrics import ssim_per_image
+    from dresg_addon.evaluation.metrics import ssim_per_image
     from dresg_addon.raster import RasterSettings, render_scene
+    from dresg_addon.util.imageio import read_image
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     addon = _load_addon()
@@ -141,7 +141,7 @@ def main(argv=None) -> int:
         rows.append(np.concatenate([result.pop("engine"), np.ones((args.height, 4, 3)), result.pop("eevee")], 1))
         results.append(result)
     if args.figure and rows:
-        from dresg_addon.imageio import write_image
+        from dresg_addon.util.imageio import write_image
 
         gap = np.ones((4, rows[0].shape[1], 3))
         write_image(args.figure, np.concatenate([part for row in rows for part in (row, gap)][:-1], 0))

@@ -16,7 +16,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from dresg_addon.machine import cpu_model, usable_cores  # noqa: E402  (needs the repository on the path)
+from dresg_addon.util.machine import cpu_model, usable_cores  # noqa: E402  (needs the repository on the path)
 
 
 def peak_rss_bytes() -> int:

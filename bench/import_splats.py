@@ -34,8 +34,8 @@ def load_addon():
 
 def synthetic_ply(path: Path, n: int) -> None:
     sys.path.insert(0, str(REPO))
-    from dresg_addon.io import write_scene
-    from dresg_addon.scene import GaussianScene
+    from dresg_addon.scene.gaussians import GaussianScene
+    from dresg_addon.scene.io import write_scene
 
     rng = np.random.default_rng(0)
     write_scene(
@@ -53,7 +53,7 @@ def synthetic_ply(path: Path, n: int) -> None:
 
 def time_import(bpy, path: Path, repeat: int) -> tuple[float, float, float, float]:
     """Best-of-``repeat`` seconds: (import, read, solid preview, whole call)."""
-    from stylize_gaussians.dresg_addon.io import read_scene
+    from stylize_gaussians.dresg_addon.scene.io import read_scene
     from stylize_gaussians.operators.splat_object import INPUT_SOLID, set_modifier_input, splat_modifier
 
     best = [float("inf")] * 4

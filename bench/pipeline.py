@@ -37,7 +37,7 @@ from pathlib import Path
 
 import harness  # first: it puts the repository on sys.path
 
-from dresg_addon.machine import load_average
+from dresg_addon.util.machine import load_average
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("DRESG_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -66,10 +66,10 @@ SD15_SIZE = (448, 320)
 
 def load_inputs(spec: dict):
     """(scene, cameras, style, scene label) for a case."""
-    from dresg_addon.demo import demo_scene, demo_style_image
-    from dresg_addon.imageio import read_rgb
-    from dresg_addon.io import read_scene
-    from dresg_addon.orbit import orbit_cameras
+    from dresg_addon.scene.demo import demo_scene, demo_style_image
+    from dresg_addon.scene.io import read_scene
+    from dresg_addon.scene.orbit import orbit_cameras
+    from dresg_addon.util.imageio import read_rgb
 
     if BONSAI.is_file():
         scene, label = read_scene(BONSAI), "bonsai-7k-mini"
@@ -85,8 +85,9 @@ def load_inputs(spec: dict):
 
 def run_preset(spec: dict) -> dict:
     """One stylize run of ``spec['preset']`` with ``spec['overrides']``, timed phase by phase."""
-    from dresg_addon import pipeline
-    from dresg_addon.config import preset
+    from dresg_addon.method import views
+    from dresg_addon.method.config import preset
+    from dresg_addon.method.loop import stylize
 
     started = time.perf_counter()
     scene, cameras, style, label = load_inputs(spec)
@@ -106,14 +107,14 @@ def run_preset(spec: dict) -> dict:
         return wrapper
 
     # stylize looks it up at call time, so the wrapper sees every call; proposal times come from the log.
-    pipeline.select_active_views = timed("selection", pipeline.select_active_views)
+    views.select_active_views = timed("selection", views.select_active_views)
 
     def progress(p):
         if p.phase == "proposal":
             marks.setdefault("first_proposal", time.perf_counter())
 
     run_start = time.perf_counter()
-    result = pipeline.stylize(scene, cameras, style, config, progress=progress)
+    result = stylize(scene, cameras, style, config, progress=progress)
     stages = [e for e in result.log if e["stage"] != "post"]
     post = [e for e in result.log if e["stage"] == "post"]
     stage_s = sum(e["stage_seconds"] for e in stages)
@@ -146,10 +147,10 @@ def run_sd15(spec: dict) -> dict:
     from diffusers import AutoencoderKL, UNet2DConditionModel
     from transformers import CLIPTextConfig, CLIPTextModel
 
-    from dresg_addon.proposal import EnergyTerms, optimize_proposal
-    from dresg_addon.proposal.sd15 import SD15Backend
-    from dresg_addon.proposal.sd15_configs import SD15_TEXT_ENCODER_CONFIG, SD15_UNET_CONFIG, SD15_VAE_CONFIG
-    from dresg_addon.schedule import stage_timesteps
+    from dresg_addon.method.proposal import EnergyTerms, optimize_proposal
+    from dresg_addon.method.proposal.sd15 import SD15Backend
+    from dresg_addon.method.proposal.sd15_configs import SD15_TEXT_ENCODER_CONFIG, SD15_UNET_CONFIG, SD15_VAE_CONFIG
+    from dresg_addon.method.schedule import stage_timesteps
 
     torch.manual_seed(0)
     unet_config = {"block_out_channels": [8, 16, 32, 32], "norm_num_groups": 8, "attention_head_dim": 2}
@@ -178,7 +179,7 @@ def run_sd15(spec: dict) -> dict:
 def run_baseline(spec: dict) -> dict:
     import torch
 
-    import dresg_addon.pipeline  # noqa: F401
+    import dresg_addon.method.loop  # noqa: F401
 
     return {"torch": torch.__version__, "threads": torch.get_num_threads(), "peak_rss": harness.peak_rss_bytes()}
 
@@ -314,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.loaded:
         return loaded_run(args)
 
-    from dresg_addon.config import PRESETS
+    from dresg_addon.method.config import PRESETS
 
     size = QUICK if args.quick else FULL
     common = {**size, "threads": args.threads}
@@ -389,8 +390,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def sd15_lines(args, common: dict, cpu_run: dict) -> list[str]:
-    from dresg_addon.config import PRESETS
-    from dresg_addon.proposal.sd15 import SD15Costs, estimate_cpu_seconds
+    from dresg_addon.method.config import PRESETS
+    from dresg_addon.method.proposal.sd15 import SD15Costs, estimate_cpu_seconds
 
     if importlib.util.find_spec("diffusers") is None:
         return ["sd15: skipped (diffusers is not installed)"]

@@ -20,7 +20,7 @@ Rows.
   renders of the 16 cameras (covered pixels) to the style, applied to every splat's colour.
 - ``preview`` and ``standard``: the stylizer's presets (the ``synth`` backend).
 
-Columns, from ``dresg_addon.metrics``, means over the evaluation views, on the pixels the scene covers
+Columns, from ``dresg_addon.evaluation.metrics``, means over the evaluation views, on the pixels the scene covers
 (alpha > 0.5): sliced-Wasserstein distance of 7x7 patches and of colours to the style image (lower is
 closer to the painting); SSIM and gradient structure to the unstylized render of the same camera
 (higher keeps more of the scene); short- (neighbouring evaluation views) and long-range (opposite
@@ -43,7 +43,7 @@ from pathlib import Path
 
 import harness  # first: it puts the repository on sys.path
 
-from dresg_addon.machine import load_average
+from dresg_addon.util.machine import load_average
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("DRESG_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -87,10 +87,10 @@ def style_path(name: str) -> Path | None:
 
 def load_case(spec: dict):
     """(scene, training cameras, evaluation cameras, style [H, W, 3]) of a case."""
-    from dresg_addon.demo import demo_scene, demo_style_image
-    from dresg_addon.imageio import read_rgb
-    from dresg_addon.io import read_scene
-    from dresg_addon.orbit import orbit_cameras
+    from dresg_addon.scene.demo import demo_scene, demo_style_image
+    from dresg_addon.scene.io import read_scene
+    from dresg_addon.scene.orbit import orbit_cameras
+    from dresg_addon.util.imageio import read_rgb
 
     path, up = SCENES[spec["scene"]]
     scene = demo_scene() if path is None else read_scene(path)
@@ -107,7 +107,7 @@ def colour_transfer_scene(scene, cameras, style):
     """The post stage alone: one covariance colour map, fitted on the covered pixels of the base renders."""
     import torch
 
-    from dresg_addon.color_transfer import transfer_scene_colors
+    from dresg_addon.method.color_transfer import transfer_scene_colors
     from dresg_addon.raster import render_scene
 
     renders = [render_scene(scene, camera) for camera in cameras]
@@ -120,9 +120,9 @@ def evaluate(base, stylized, cameras, style) -> tuple[dict, list]:
     """The columns over ``cameras`` (covered pixels), and the (base, stylized) renders of every camera."""
     import torch
 
-    from dresg_addon import metrics
-    from dresg_addon.imageio import resize_image
+    from dresg_addon.evaluation import metrics
     from dresg_addon.raster import render_scene
+    from dresg_addon.util.imageio import resize_image
 
     ours = [render_scene(stylized, camera) for camera in cameras]
     theirs = [render_scene(base, camera) for camera in cameras]
@@ -158,9 +158,9 @@ def run_case(spec: dict) -> dict:
     """Stylize one (scene, style) with one row's method, then evaluate it on the novel views."""
     import numpy as np
 
-    from dresg_addon.config import preset
-    from dresg_addon.imageio import write_image
-    from dresg_addon.pipeline import stylize
+    from dresg_addon.method.config import preset
+    from dresg_addon.method.loop import stylize
+    from dresg_addon.util.imageio import write_image
 
     scene, train, novel, style = load_case(spec)
     started = time.perf_counter()
@@ -198,7 +198,7 @@ def run_case(spec: dict) -> dict:
 def run_baseline(spec: dict) -> dict:
     import torch
 
-    import dresg_addon.pipeline  # noqa: F401
+    import dresg_addon.method.loop  # noqa: F401
 
     return {"torch": torch.__version__, "threads": torch.get_num_threads(), "peak_rss": harness.peak_rss_bytes()}
 

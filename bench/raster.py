@@ -42,7 +42,7 @@ from pathlib import Path
 
 import harness  # first: it puts the repository on sys.path
 
-from dresg_addon.machine import load_average
+from dresg_addon.util.machine import load_average
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("DRESG_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -76,7 +76,7 @@ def centre_window(width: int, height: int) -> tuple[int, int, int, int]:
 def bench_camera(width: int, height: int, world_to_camera=None):
     import numpy as np
 
-    from dresg_addon.camera import Camera
+    from dresg_addon.scene.camera import Camera
 
     f = width / (2.0 * math.tan(math.radians(FOV_X_DEG) / 2.0))
     w2c = np.eye(4) if world_to_camera is None else world_to_camera
@@ -117,8 +117,8 @@ def bonsai_scene(width: int, height: int):
     """(arrays, camera): the bonsai from look_at(initialCameraPosition, initialCameraLookAt, cameraUp)."""
     import numpy as np
 
-    from dresg_addon.camera import look_at
-    from dresg_addon.io import read_scene
+    from dresg_addon.scene.camera import look_at
+    from dresg_addon.scene.io import read_scene
 
     scene = read_scene(BONSAI)
     hint = json.loads(BONSAI_HINT.read_text())

@@ -2,10 +2,21 @@
 
 Imports nothing heavy at package import time and never imports ``bpy``: the Blender operators in
 ``operators/`` and the command line (``python -m dresg_addon``) are thin layers over this package.
-Importing it sets how torch's CPU threads wait (:mod:`dresg_addon.threads`), before torch loads.
+Importing it sets how torch's CPU threads wait (:mod:`dresg_addon.util.threads`), before torch loads.
+
+Packages, bottom to top; each imports only its own and those below it (tests/test_package.py checks):
+
+==========  =====================================================================================
+util        errors, atomic writes, image files, machine facts, torch threads, local image encoders
+scene       the scene and camera types, scene and camera files, Blender camera math, orbits, demo
+raster      the differentiable rasterizer and its float64 reference
+method      the paper: views, schedule, proposals, targets, fit loss, PCGrad, optimiser, the loop
+evaluation  metrics, CLIP-S / DINO-C, the report and its plots, stability cases
+commands    the sub-commands of the CLI (``cli`` builds the parser, ``__main__`` runs it)
+==========  =====================================================================================
 """
 
-from .threads import apply_thread_policy
+from .util.threads import apply_thread_policy
 
 __version__ = "0.1.0"
 THREAD_POLICY = apply_thread_policy()

@@ -1,7 +1,7 @@
 """``python -m dresg_addon <command> ...``: one sub-command per module in ``dresg_addon/commands``.
 
 Each command module defines ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``.
-Engine errors (:class:`~dresg_addon.errors.DresgError`) become one line on stderr and exit code 2.
+Engine errors (:class:`~dresg_addon.util.errors.DresgError`) become one line on stderr and exit code 2.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import argparse
 import importlib
 import sys
 
-from .errors import DresgError
+from .util.errors import DresgError
 
 COMMAND_MODULES = (
     "info",

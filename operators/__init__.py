@@ -1,7 +1,7 @@
 """Operators and properties: thin adapters between Blender and the engine in ``dresg_addon``.
 
 Each operator reads properties, calls one engine function and writes the result back; engine errors
-(:class:`~dresg_addon.errors.DresgError`) become reports. torch and the optimizer are imported inside
+(:class:`~dresg_addon.util.errors.DresgError`) become reports. torch and the optimizer are imported inside
 the operators, so enabling the extension stays instant and works without torch.
 """
 

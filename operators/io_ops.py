@@ -7,7 +7,7 @@ import warnings
 import bpy
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from ..dresg_addon.errors import DresgError
+from ..dresg_addon.util.errors import DresgError
 from .splat_object import create_splat_object, is_splat_object, scene_from_object
 
 
@@ -85,8 +85,8 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
     )
 
     def execute(self, context):
-        from ..dresg_addon.camera_io import detect_axes
-        from ..dresg_addon.io import InvalidSplatsWarning, read_scene_detailed
+        from ..dresg_addon.scene.camera_io import detect_axes
+        from ..dresg_addon.scene.io import InvalidSplatsWarning, read_scene_detailed
 
         start = time.perf_counter()
         try:
@@ -164,7 +164,7 @@ class DRESG_OT_export_splats(bpy.types.Operator, ExportHelper):
         return super().invoke(context, event)
 
     def execute(self, context):
-        from ..dresg_addon.io import write_scene
+        from ..dresg_addon.scene.io import write_scene
 
         obj = context.active_object
         try:

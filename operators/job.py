@@ -17,7 +17,7 @@ import traceback
 
 import bpy
 
-from ..dresg_addon.errors import CancelledError, DresgError
+from ..dresg_addon.util.errors import CancelledError, DresgError
 from .splat_object import is_splat_object, write_colors, write_geometry
 
 PRINT_INTERVAL = 2.0  # seconds between progress lines in background mode
@@ -43,7 +43,7 @@ def tag_redraw() -> None:
 
 
 class StylizeJob:
-    """One run of :func:`dresg_addon.pipeline.stylize` on a splat object."""
+    """One run of :func:`dresg_addon.method.loop.stylize` on a splat object."""
 
     def __init__(self, obj, scene, cameras, style_rgb, config, *, views=None, style_name: str = "") -> None:
         self.object_name = obj.name
@@ -118,7 +118,7 @@ class StylizeJob:
             self._thread.join(timeout)
 
     def _work(self) -> None:
-        from ..dresg_addon.pipeline import stylize
+        from ..dresg_addon.method.loop import stylize
 
         scene, cameras, style_rgb, views = self._inputs
         self._inputs = None  # the snapshot is the worker's now

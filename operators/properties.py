@@ -1,13 +1,13 @@
 """Properties: the stylization settings on the scene, and a view flag on each camera object.
 
-The settings mirror :class:`dresg_addon.config.StylizeConfig`; choosing a preset copies its values
+The settings mirror :class:`dresg_addon.method.config.StylizeConfig`; choosing a preset copies its values
 into the fields, and :meth:`DRESG_PG_settings.config` turns the fields back into a config.
 """
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from ..dresg_addon.config import DEFAULT_PRESET, PRESETS, SCHEDULES, StylizeConfig, preset
+from ..dresg_addon.method.config import DEFAULT_PRESET, PRESETS, SCHEDULES, StylizeConfig, preset
 
 # Panel field -> StylizeConfig field, copied by a preset and read back by config().
 CONFIG_FIELDS = (

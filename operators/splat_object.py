@@ -1,6 +1,6 @@
 """The splat object: a mesh with one vertex per Gaussian, its Geometry Nodes preview and its material.
 
-Arrays come from and go to :mod:`dresg_addon.splat_mesh` (which documents every attribute); this
+Arrays come from and go to :mod:`dresg_addon.scene.splat_mesh` (which documents every attribute); this
 module only moves them in and out of Blender with ``foreach_set`` / ``foreach_get`` and builds the
 node trees. Object custom properties:
 
@@ -19,9 +19,9 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..dresg_addon import splat_mesh as sm
-from ..dresg_addon.errors import SceneFormatError
-from ..dresg_addon.scene import GaussianScene
+from ..dresg_addon.scene import splat_mesh as sm
+from ..dresg_addon.scene.gaussians import GaussianScene
+from ..dresg_addon.util.errors import SceneFormatError
 
 NODE_GROUP = "DReSG Gaussian Splats"
 NODE_GROUP_VERSION = 2  # bump when the tree changes; older trees are rebuilt in place
@@ -405,7 +405,7 @@ def _build_node_group(group) -> None:
     links.new(visible.outputs[0], selection.inputs[0])
     links.new(capped.outputs[0], selection.inputs[1])
 
-    # Disk frame: the smallest axis becomes the instance's Z (see dresg_addon.splat_mesh).
+    # Disk frame: the smallest axis becomes the instance's Z (see dresg_addon.scene.splat_mesh).
     scale_attr = named(sm.SCALE, "FLOAT_VECTOR", -1150, 0)
     xyz = node("ShaderNodeSeparateXYZ", -1000, 0)
     links.new(scale_attr, xyz.inputs[0])

@@ -5,8 +5,8 @@ import os
 import bpy
 import numpy as np
 
-from ..dresg_addon import splat_mesh
-from ..dresg_addon.errors import DresgError, ImageError
+from ..dresg_addon.scene import splat_mesh
+from ..dresg_addon.util.errors import DresgError, ImageError
 from . import ADDON_PACKAGE, job
 from .splat_object import is_splat_object, restore_original, scene_from_object
 from .views import active_cameras, fitting_cameras, scene_cameras
@@ -35,7 +35,7 @@ def style_image(settings) -> tuple[np.ndarray, str]:
         if image.is_float:  # float buffers are scene-linear; the method works on display values
             pixels = splat_mesh.linear_to_srgb(pixels)
         return splat_mesh.image_from_pixels(pixels, width, height, channels), image.name
-    from ..dresg_addon.imageio import STYLE_MAX_SIDE, read_rgb
+    from ..dresg_addon.util.imageio import STYLE_MAX_SIDE, read_rgb
 
     if not settings.style_path:
         raise ImageError("no style image chosen")
@@ -72,7 +72,7 @@ def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[
     if camera_objects:
         cameras = fitting_cameras(scene, obj, camera_objects)
     else:
-        from ..dresg_addon.orbit import orbit_cameras
+        from ..dresg_addon.scene.orbit import orbit_cameras
 
         note = f"No cameras in the scene: using {settings.orbit_count} orbit cameras"
         up = splat_mesh.local_up(np.array(obj.matrix_world))

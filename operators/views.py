@@ -1,7 +1,7 @@
 """Views: the scene's cameras as engine cameras, coverage-based view selection, orbit cameras.
 
 Cameras are converted in the splat object's LOCAL frame (its transform, axis conversion included,
-is respected) by :mod:`dresg_addon.blender_camera`; the render resolution is the scene's.
+is respected) by :mod:`dresg_addon.scene.blender_camera`; the render resolution is the scene's.
 """
 
 import os
@@ -13,8 +13,8 @@ import numpy as np
 from bpy_extras.io_utils import ImportHelper
 from mathutils import Matrix
 
-from ..dresg_addon import blender_camera
-from ..dresg_addon.errors import DresgError
+from ..dresg_addon.scene import blender_camera
+from ..dresg_addon.util.errors import DresgError
 from .job import tag_redraw
 from .splat_object import is_splat_object, scene_from_object
 
@@ -77,7 +77,7 @@ def fit_size(scene) -> tuple[int, int]:
 
 def fitting_cameras(scene, splat_object, camera_objects) -> list:
     """Engine cameras for camera objects at the size stylizing and view selection use (:func:`fit_size`)."""
-    from ..dresg_addon.camera_io import resize_cameras
+    from ..dresg_addon.scene.camera_io import resize_cameras
 
     cameras = engine_cameras(scene, splat_object, camera_objects)
     width, height = fit_size(scene)
@@ -147,8 +147,8 @@ class SelectionJob:
         tag_redraw()
 
     def _work(self) -> None:
-        from ..dresg_addon.errors import CancelledError
-        from ..dresg_addon.pipeline import select_active_views
+        from ..dresg_addon.method.views import select_active_views
+        from ..dresg_addon.util.errors import CancelledError
 
         splats, cameras, config = self._inputs
         try:
@@ -293,8 +293,8 @@ class DRESG_OT_add_orbit_cameras(bpy.types.Operator):
         return self.execute(context)
 
     def execute(self, context):
-        from ..dresg_addon.orbit import orbit_cameras
-        from ..dresg_addon.splat_mesh import local_up
+        from ..dresg_addon.scene.orbit import orbit_cameras
+        from ..dresg_addon.scene.splat_mesh import local_up
 
         obj, scene = context.active_object, context.scene
         width, height = blender_camera.render_size(_render_params(scene))
@@ -332,7 +332,7 @@ class DRESG_OT_import_cameras(bpy.types.Operator, ImportHelper):
         return _splat_poll(cls, context)
 
     def execute(self, context):
-        from ..dresg_addon.camera_io import load_cameras
+        from ..dresg_addon.scene.camera_io import load_cameras
 
         obj, scene = context.active_object, context.scene
         path = bpy.path.abspath(self.filepath)

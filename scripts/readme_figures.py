@@ -22,8 +22,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from dresg_addon.demo import demo_style_image  # noqa: E402
-from dresg_addon.imageio import letterbox, read_rgb, write_image  # noqa: E402
+from dresg_addon.scene.demo import demo_style_image  # noqa: E402
+from dresg_addon.util.imageio import letterbox, read_rgb, write_image  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 

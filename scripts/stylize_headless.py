@@ -57,7 +57,7 @@ def load_addon(package: str = PACKAGE):
 def parse_args(argv: list[str]) -> argparse.Namespace:
     if str(REPO) not in sys.path:
         sys.path.insert(0, str(REPO))
-    from dresg_addon.config import DEFAULT_PRESET, PRESETS, PROPOSALS
+    from dresg_addon.method.config import DEFAULT_PRESET, PRESETS, PROPOSALS
 
     parser = argparse.ArgumentParser(
         prog="stylize_headless.py", description="Stylize a Gaussian splat scene after a style image (DReSG)."
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1 if exit_.code else 0
     import bpy
 
-    from dresg_addon.errors import DresgError
+    from dresg_addon.util.errors import DresgError
 
     try:
         if args.blend:
@@ -116,8 +116,8 @@ def main(argv: list[str] | None = None) -> int:
         scene = bpy.context.scene
         axes = AXES[args.axes]
         if axes == "AUTO" and args.cameras:  # the views' own up
-            from dresg_addon.camera_io import load_cameras, mean_camera_up
-            from dresg_addon.splat_mesh import AXIS_LABELS, axis_conversion_for_up
+            from dresg_addon.scene.camera_io import load_cameras, mean_camera_up
+            from dresg_addon.scene.splat_mesh import AXIS_LABELS, axis_conversion_for_up
 
             axes = axis_conversion_for_up(mean_camera_up(load_cameras(args.cameras)))
             print(f"[stylize] axes: {AXIS_LABELS[axes]}, from the cameras in {args.cameras}")

@@ -20,9 +20,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dresg_addon.imageio import read_rgb, resize_image, to_array, to_tensor, write_image  # noqa: E402
-from dresg_addon.proposal import make_backend  # noqa: E402
-from dresg_addon.schedule import stage_timesteps  # noqa: E402
+from dresg_addon.method.proposal import make_backend  # noqa: E402
+from dresg_addon.method.schedule import stage_timesteps  # noqa: E402
+from dresg_addon.util.imageio import read_rgb, resize_image, to_array, to_tensor, write_image  # noqa: E402
 
 
 def main() -> int:

@@ -17,10 +17,10 @@ from test_cameras import colmap_images, write_colmap_binary  # noqa: E402
 from test_io import graphdeco_columns, random_scene, write_test_ply  # noqa: E402
 
 from dresg_addon import cli  # noqa: E402
-from dresg_addon.camera_io import MAX_IMAGE_SIDE, load_cameras, read_cameras_json  # noqa: E402
-from dresg_addon.errors import CameraError, ImageError, SceneFormatError  # noqa: E402
-from dresg_addon.imageio import read_rgb  # noqa: E402
-from dresg_addon.io import read_scene  # noqa: E402
+from dresg_addon.scene.camera_io import MAX_IMAGE_SIDE, load_cameras, read_cameras_json  # noqa: E402
+from dresg_addon.scene.io import read_scene  # noqa: E402
+from dresg_addon.util.errors import CameraError, ImageError, SceneFormatError  # noqa: E402
+from dresg_addon.util.imageio import read_rgb  # noqa: E402
 
 
 def _one_line_error(capsys, args) -> str:
@@ -156,7 +156,7 @@ def test_a_link_to_a_device_is_refused_instead_of_read_forever(tmp_path):
 
 
 def test_a_nan_normal_or_extra_property_is_caught_on_read(tmp_path, capsys):
-    from dresg_addon.io import read_scene_detailed
+    from dresg_addon.scene.io import read_scene_detailed
 
     scene = random_scene(n=6, degree=0, normals=True, extras={"confidence": np.ones(6, np.float32)})
     columns = graphdeco_columns(scene)
@@ -178,7 +178,7 @@ def test_a_nan_normal_or_extra_property_is_caught_on_read(tmp_path, capsys):
 
 
 def test_colours_far_outside_any_colour_are_clamped_on_read_with_a_note(tmp_path, capsys):
-    from dresg_addon.io import SH_LIMIT, ClampedColoursWarning, read_scene_detailed
+    from dresg_addon.scene.io import SH_LIMIT, ClampedColoursWarning, read_scene_detailed
 
     columns = graphdeco_columns(random_scene(n=6, degree=1))
     columns["f_dc_0"][1] = 1e30
@@ -197,7 +197,7 @@ def test_colours_far_outside_any_colour_are_clamped_on_read_with_a_note(tmp_path
 
 
 def test_a_corrupt_png_is_one_line_with_libpngs_own_words_kept_off_stderr(tmp_path, capfd):
-    from dresg_addon.imageio import write_image
+    from dresg_addon.util.imageio import write_image
 
     write_image(tmp_path / "good.png", np.random.default_rng(0).uniform(0, 1, (64, 64, 3)).astype(np.float32))
     data = (tmp_path / "good.png").read_bytes()
@@ -213,7 +213,7 @@ def test_a_corrupt_png_is_one_line_with_libpngs_own_words_kept_off_stderr(tmp_pa
 def test_reading_and_writing_corrupt_scenes_raises_no_numpy_warnings(tmp_path):
     import warnings
 
-    from dresg_addon.io import write_scene
+    from dresg_addon.scene.io import write_scene
 
     columns = graphdeco_columns(random_scene(n=8, degree=0))
     columns["x"] = columns["x"].astype(np.float64)
@@ -234,9 +234,9 @@ def test_reading_and_writing_corrupt_scenes_raises_no_numpy_warnings(tmp_path):
 def test_a_render_that_cannot_fit_in_memory_is_refused_before_allocating(monkeypatch):
     import torch
 
-    import dresg_addon.machine as machine
-    from dresg_addon.camera import Camera, look_at
+    import dresg_addon.util.machine as machine
     from dresg_addon.raster import render
+    from dresg_addon.scene.camera import Camera, look_at
 
     n = 50
     g = torch.Generator().manual_seed(0)

@@ -125,8 +125,8 @@ def test_every_operator_is_in_a_menu_under_its_f3_name(addon):
 
 
 def _splat_object(tmp_path):
-    from dresg_addon.io import write_scene
-    from dresg_addon.scene import GaussianScene
+    from dresg_addon.scene.gaussians import GaussianScene
+    from dresg_addon.scene.io import write_scene
 
     rng = np.random.default_rng(0)
     n = 40
@@ -145,7 +145,7 @@ def _splat_object(tmp_path):
 def _states(addon, tmp_path):
     """Yield (name, apply) pairs that put the add-on in each state the panels must draw."""
     job = addon.operators.job
-    scene_module = addon.dresg_addon.scene
+    scene_module = addon.dresg_addon.scene.gaussians
 
     def fake_job(obj, state, **fields):
         empty = scene_module.GaussianScene(
@@ -266,7 +266,7 @@ def test_preferences_draw_in_every_install_state(addon, monkeypatch):
 
 
 def test_style_image_from_a_file_or_a_blender_image(addon, tmp_path):
-    from dresg_addon.imageio import write_image
+    from dresg_addon.util.imageio import write_image
 
     settings = bpy.context.scene.dresg
     style_image = addon.operators.stylize.style_image
@@ -287,7 +287,7 @@ def test_style_image_from_a_file_or_a_blender_image(addon, tmp_path):
     np.testing.assert_allclose(array, picture, atol=0.5 / 255)  # top row first, as files are read
 
     image.source, image.filepath = "FILE", str(tmp_path / "gone.png")  # its file went missing
-    with pytest.raises(addon.dresg_addon.errors.ImageError, match="painting"):
+    with pytest.raises(addon.dresg_addon.util.errors.ImageError, match="painting"):
         style_image(settings)
 
 
@@ -300,7 +300,7 @@ def test_stylize_reports_input_errors_before_running(addon, tmp_path, monkeypatc
     bpy.ops.dresg.add_orbit_cameras(count=1)
     obj.scale = (1.0, 2.0, 1.0)  # cameras cannot live in a non-uniformly scaled frame
     bpy.context.view_layer.update()
-    from dresg_addon.imageio import write_image
+    from dresg_addon.util.imageio import write_image
 
     write_image(tmp_path / "style.png", np.zeros((4, 4, 3), np.float32))
     bpy.context.scene.dresg.style_path = str(tmp_path / "style.png")
@@ -334,9 +334,7 @@ def test_installer_runs_commands_and_reports_failures(addon, tmp_path):
 
 
 def test_engine_modules_used_by_the_addon_do_not_import_bpy():
-    code = (
-        "import sys, dresg_addon.splat_mesh, dresg_addon.blender_camera, dresg_addon.orbit; print('bpy' in sys.modules)"
-    )
+    code = "import sys, dresg_addon.scene.splat_mesh, dresg_addon.scene.blender_camera, dresg_addon.scene.orbit; print('bpy' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "False"
 
@@ -384,7 +382,7 @@ def test_extension_zip_builds_and_installs(tmp_path):
 
     names = zipfile.ZipFile(archive).namelist()
     assert {"blender_manifest.toml", "__init__.py", "LICENSE", "operators/stylize.py", "ui/panels.py"} <= set(names)
-    assert "dresg_addon/scene.py" in names
+    assert "dresg_addon/scene/gaussians.py" in names
     assert not [n for n in names if n.startswith(("tests/", "bench/", "scripts/", ".venv/")) or "__pycache__" in n]
 
     code = textwrap.dedent(

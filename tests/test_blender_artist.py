@@ -6,11 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon import splat_mesh as sm
-from dresg_addon.camera_io import write_cameras_json
-from dresg_addon.io import write_scene
-from dresg_addon.orbit import orbit_cameras
-from dresg_addon.scene import GaussianScene
+from dresg_addon.scene import splat_mesh as sm
+from dresg_addon.scene.camera_io import write_cameras_json
+from dresg_addon.scene.gaussians import GaussianScene
+from dresg_addon.scene.io import write_scene
+from dresg_addon.scene.orbit import orbit_cameras
 
 bpy = pytest.importorskip("bpy")
 from mathutils import Vector  # noqa: E402  (comes with bpy)
@@ -121,7 +121,7 @@ def test_import_cameras_reproduces_the_file_and_sets_the_render_size(addon, tmp_
 def test_max_views_applies_to_ticked_cameras(addon, tmp_path):
     _import(tmp_path, _scene())
     settings = bpy.context.scene.dresg
-    from dresg_addon.imageio import write_image
+    from dresg_addon.util.imageio import write_image
 
     write_image(tmp_path / "style.png", np.full((8, 8, 3), 0.5, np.float32))
     settings.style_path = str(tmp_path / "style.png")
@@ -141,7 +141,7 @@ def test_fit_resolution_defaults_to_the_presets_size(addon, tmp_path):
     scene = bpy.context.scene
     scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 1920, 1080, 50
     settings = scene.dresg
-    from dresg_addon.imageio import write_image
+    from dresg_addon.util.imageio import write_image
 
     write_image(tmp_path / "style.png", np.full((8, 8, 3), 0.5, np.float32))
     settings.style_path = str(tmp_path / "style.png")
@@ -194,7 +194,7 @@ def test_view_selection_runs_on_a_worker_thread_and_cancels(addon, tmp_path):
     job.start()
     job.join(120)
     assert job.done and not job.error and not job.cancelled
-    expected = addon.dresg_addon.pipeline.select_active_views(splats, cameras, scene.dresg.config())
+    expected = addon.dresg_addon.method.views.select_active_views(splats, cameras, scene.dresg.config())
     assert job.result.indices == expected.indices and job.result.per_view_coverage == expected.per_view_coverage
     assert job.fraction == pytest.approx(3 / 4)  # the last view's progress report
 

@@ -5,11 +5,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon import splat_mesh as sm
-from dresg_addon.imageio import read_image
-from dresg_addon.io import read_scene, write_scene
-from dresg_addon.orbit import orbit_cameras
-from dresg_addon.scene import SH_C0, GaussianScene
+from dresg_addon.scene import splat_mesh as sm
+from dresg_addon.scene.gaussians import SH_C0, GaussianScene
+from dresg_addon.scene.io import read_scene, write_scene
+from dresg_addon.scene.orbit import orbit_cameras
+from dresg_addon.util.imageio import read_image
 
 bpy = pytest.importorskip("bpy")
 pytestmark = pytest.mark.blender

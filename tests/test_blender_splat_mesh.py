@@ -1,11 +1,11 @@
-"""dresg_addon.splat_mesh: the numpy side of the Blender splat object (no bpy needed)."""
+"""dresg_addon.scene.splat_mesh: the numpy side of the Blender splat object (no bpy needed)."""
 
 import numpy as np
 import pytest
 
-from dresg_addon import splat_mesh as sm
-from dresg_addon.errors import SceneFormatError
-from dresg_addon.scene import SH_C0, GaussianScene
+from dresg_addon.scene import splat_mesh as sm
+from dresg_addon.scene.gaussians import SH_C0, GaussianScene
+from dresg_addon.util.errors import SceneFormatError
 
 
 def random_scene(n=64, rest=8, normals=True, seed=0) -> GaussianScene:

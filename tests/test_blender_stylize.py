@@ -11,14 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon import splat_mesh as sm
-from dresg_addon.imageio import read_image
-from dresg_addon.io import read_scene
+from dresg_addon.scene import splat_mesh as sm
+from dresg_addon.scene.io import read_scene
+from dresg_addon.util.imageio import read_image
 
 bpy = pytest.importorskip("bpy")
 pytest.importorskip("torch")
-if importlib.util.find_spec("dresg_addon.pipeline") is None:
-    pytest.skip("needs dresg_addon/pipeline.py (stylize, select_active_views)", allow_module_level=True)
+if importlib.util.find_spec("dresg_addon.method.loop") is None:
+    pytest.skip("needs dresg_addon/method/loop.py (stylize)", allow_module_level=True)
 pytestmark = pytest.mark.blender
 REPO = Path(__file__).resolve().parents[1]
 SETTINGS = {  # a quick run: 2 stages of 3 fit steps on 64x48 renders of 2 views
@@ -176,7 +176,7 @@ def test_worker_errors_reach_the_job_and_the_report(luigi, tmp_path):
 
 
 def test_select_views_by_coverage_ticks_the_engine_choice(luigi):
-    from stylize_gaussians.dresg_addon.pipeline import select_active_views
+    from stylize_gaussians.dresg_addon.method.views import select_active_views
     from stylize_gaussians.operators.splat_object import scene_from_object
     from stylize_gaussians.operators.views import fitting_cameras, scene_cameras
 
@@ -230,8 +230,8 @@ def test_headless_script_with_a_blend_file(addon, shared_data, tmp_path):
 
 
 def test_headless_script_without_a_blend_file(shared_data, tmp_path):
-    from dresg_addon.camera_io import write_cameras_json
-    from dresg_addon.orbit import orbit_cameras
+    from dresg_addon.scene.camera_io import write_cameras_json
+    from dresg_addon.scene.orbit import orbit_cameras
 
     ply, style = shared_data("scenes/luigi.ply"), shared_data("styles/the_scream.jpg")
     quick = ["--stages", "1", "--fit-steps", "2", "--post-steps", "1", "--width", "64", "--height", "48"]

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon.blender_camera import (
+from dresg_addon.scene.blender_camera import (
     BLENDER_TO_OPENCV,
     BlenderCameraParams,
     blender_intrinsics,
@@ -20,8 +20,8 @@ from dresg_addon.blender_camera import (
     clip_distances,
     size_within,
 )
-from dresg_addon.camera import Camera, look_at
-from dresg_addon.camera_io import (
+from dresg_addon.scene.camera import Camera, look_at
+from dresg_addon.scene.camera_io import (
     detect_axes,
     find_capture_cameras,
     load_cameras,
@@ -32,9 +32,9 @@ from dresg_addon.camera_io import (
     read_llff,
     write_cameras_json,
 )
-from dresg_addon.errors import CameraError, ConfigError
-from dresg_addon.orbit import orbit_cameras, robust_bounds
-from dresg_addon.scene import GaussianScene
+from dresg_addon.scene.gaussians import GaussianScene
+from dresg_addon.scene.orbit import orbit_cameras, robust_bounds
+from dresg_addon.util.errors import CameraError, ConfigError
 
 # ----------------------------------------------------------------------------------------------------
 # Helpers
@@ -737,7 +737,7 @@ def test_clip_distances_cover_the_box_at_any_scale():
 
 
 def test_up_axis_comes_from_the_capture_cameras(tmp_path):
-    from dresg_addon.splat_mesh import axis_conversion_for_up
+    from dresg_addon.scene.splat_mesh import axis_conversion_for_up
 
     scene = GaussianScene(
         means=np.random.default_rng(0).normal(size=(50, 3)).astype(np.float32),

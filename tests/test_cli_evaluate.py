@@ -11,13 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon import cli, metrics
-from dresg_addon.camera import Camera, look_at
-from dresg_addon.camera_io import write_cameras_json
-from dresg_addon.imageio import write_image
-from dresg_addon.io import write_scene
-from dresg_addon.orbit import orbit_cameras
-from dresg_addon.scene import SH_C0, GaussianScene
+from dresg_addon import cli
+from dresg_addon.evaluation import metrics
+from dresg_addon.scene.camera import Camera, look_at
+from dresg_addon.scene.camera_io import write_cameras_json
+from dresg_addon.scene.gaussians import SH_C0, GaussianScene
+from dresg_addon.scene.io import write_scene
+from dresg_addon.scene.orbit import orbit_cameras
+from dresg_addon.util.imageio import write_image
 
 REPO = Path(__file__).resolve().parents[1]
 

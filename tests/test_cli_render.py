@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 
 from dresg_addon import cli
-from dresg_addon.camera import Camera, look_at
-from dresg_addon.camera_io import load_cameras, write_cameras_json
 from dresg_addon.commands.render import output_stems, parse_background
-from dresg_addon.errors import ConfigError
-from dresg_addon.imageio import read_image
-from dresg_addon.io import read_scene, write_scene
-from dresg_addon.orbit import orbit_cameras
 from dresg_addon.raster import RasterSettings, render_scene
-from dresg_addon.scene import GaussianScene
+from dresg_addon.scene.camera import Camera, look_at
+from dresg_addon.scene.camera_io import load_cameras, write_cameras_json
+from dresg_addon.scene.gaussians import GaussianScene
+from dresg_addon.scene.io import read_scene, write_scene
+from dresg_addon.scene.orbit import orbit_cameras
+from dresg_addon.util.errors import ConfigError
+from dresg_addon.util.imageio import read_image
 
 REPO = Path(__file__).resolve().parents[1]
 

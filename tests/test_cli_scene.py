@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from dresg_addon import cli
-from dresg_addon.io import SceneFormat, read_scene, read_scene_detailed, write_scene
-from dresg_addon.scene import GaussianScene
+from dresg_addon.scene.gaussians import GaussianScene
+from dresg_addon.scene.io import SceneFormat, read_scene, read_scene_detailed, write_scene
 
 REPO = Path(__file__).resolve().parents[1]
 

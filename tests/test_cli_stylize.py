@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from dresg_addon import cli
-from dresg_addon.camera import Camera, look_at
-from dresg_addon.camera_io import write_cameras_json
-from dresg_addon.config import PRESETS, StylizeConfig
-from dresg_addon.imageio import read_image, write_image
-from dresg_addon.io import read_scene, write_scene
-from dresg_addon.scene import SH_C0, GaussianScene
+from dresg_addon.method.config import PRESETS, StylizeConfig
+from dresg_addon.scene.camera import Camera, look_at
+from dresg_addon.scene.camera_io import write_cameras_json
+from dresg_addon.scene.gaussians import SH_C0, GaussianScene
+from dresg_addon.scene.io import read_scene, write_scene
+from dresg_addon.util.imageio import read_image, write_image
 
 REPO = Path(__file__).resolve().parents[1]
 # The preview preset cut down to one short stage; it renders the 64x48 cameras at full size.
@@ -221,7 +221,7 @@ def test_select_views_with_cameras_that_see_nothing_exits_2(files, tmp_path, cap
 
 def test_demo_command_writes_its_assets_and_before_after_images(tmp_path, monkeypatch, capsys):
     """The demo's own scene, cameras and style with a tiny schedule and small images (a full demo takes ~45 s)."""
-    import dresg_addon.demo as demo
+    import dresg_addon.scene.demo as demo
 
     real_cameras = demo.demo_cameras
     monkeypatch.setattr(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dresg_addon.color_transfer import (
+from dresg_addon.method.color_transfer import (
     HISTOGRAM_QUANTILES,
     color_moments,
     color_transfer,
@@ -16,7 +16,7 @@ from dresg_addon.color_transfer import (
     symmetric_sqrt,
     transfer_scene_colors,
 )
-from dresg_addon.errors import CameraError, ImageError, NumericalError
+from dresg_addon.util.errors import CameraError, ImageError, NumericalError
 
 
 def _correlated_images(batch, h, w, mix, mean, seed):
@@ -262,7 +262,7 @@ def test_color_map_masks_flat_inputs_and_extrapolation():
 def test_transfer_scene_colors_recolours_every_splat_by_one_map():
     import numpy as np
 
-    from dresg_addon.scene import SH_C0, GaussianScene
+    from dresg_addon.scene.gaussians import SH_C0, GaussianScene
 
     n = 5
     colors = np.linspace(0.2, 0.8, 3 * n).reshape(n, 3)

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon import demo
-from dresg_addon.demo import demo_cameras, demo_scene, demo_style_image, write_demo_assets
-from dresg_addon.scene import SH_C0
+from dresg_addon.scene import demo
+from dresg_addon.scene.demo import demo_cameras, demo_scene, demo_style_image, write_demo_assets
+from dresg_addon.scene.gaussians import SH_C0
 
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh_dc")
 
@@ -152,9 +152,9 @@ def test_style_image_is_deterministic_per_seed():
 
 
 def test_demo_assets_read_back(tmp_path, scene):
-    from dresg_addon.camera_io import read_cameras_json
-    from dresg_addon.imageio import read_rgb
-    from dresg_addon.io import read_scene
+    from dresg_addon.scene.camera_io import read_cameras_json
+    from dresg_addon.scene.io import read_scene
+    from dresg_addon.util.imageio import read_rgb
 
     paths = write_demo_assets(tmp_path / "demo")
     assert set(paths) == {"scene", "cameras", "style"}
@@ -171,9 +171,9 @@ def test_demo_assets_read_back(tmp_path, scene):
 
 
 def test_import_is_light():
-    code = "import sys, dresg_addon.demo; print(any(m in sys.modules for m in ('OpenImageIO', 'torch', 'bpy')))"
+    code = "import sys, dresg_addon.scene.demo; print(any(m in sys.modules for m in ('OpenImageIO', 'torch', 'bpy')))"
     result = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(demo.__file__).parents[1]
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(demo.__file__).parents[2]
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "False"

@@ -23,13 +23,13 @@ from transformers import (  # noqa: E402
     ViTModel,
 )
 
-from dresg_addon.camera import Camera, look_at  # noqa: E402
-from dresg_addon.clip_dino import _preprocess  # noqa: E402
-from dresg_addon.config import StylizeConfig  # noqa: E402
-from dresg_addon.dino import FEATURE_SIZE, DinoFeatures  # noqa: E402
-from dresg_addon.errors import ModelError  # noqa: E402
-from dresg_addon.pipeline import stylize  # noqa: E402
-from dresg_addon.scene import SH_C0, GaussianScene  # noqa: E402
+from dresg_addon.method.config import StylizeConfig  # noqa: E402
+from dresg_addon.method.dino import FEATURE_SIZE, DinoFeatures  # noqa: E402
+from dresg_addon.method.loop import stylize  # noqa: E402
+from dresg_addon.scene.camera import Camera, look_at  # noqa: E402
+from dresg_addon.scene.gaussians import SH_C0, GaussianScene  # noqa: E402
+from dresg_addon.util.errors import ModelError  # noqa: E402
+from dresg_addon.util.feature_models import preprocess  # noqa: E402
 
 TINY = {"hidden_size": 16, "num_hidden_layers": 1, "num_attention_heads": 2}
 
@@ -54,7 +54,7 @@ def _images(batch: int = 2, height: int = 32, width: int = 48) -> torch.Tensor:
 
 def _tokens(features: DinoFeatures, images: torch.Tensor) -> torch.Tensor:  # -> [B, T, C]
     with torch.no_grad():
-        return features.model.model(pixel_values=_preprocess(features.model, images)).last_hidden_state
+        return features.model.model(pixel_values=preprocess(features.model, images)).last_hidden_state
 
 
 def test_dinov2_features_are_the_patch_tokens_on_a_grid(dinov2):

@@ -22,12 +22,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_cameras import colmap_images, write_colmap_text  # noqa: E402
 
 from dresg_addon import cli  # noqa: E402
-from dresg_addon.camera import Camera, look_at  # noqa: E402
-from dresg_addon.camera_io import load_cameras, write_cameras_json  # noqa: E402
-from dresg_addon.errors import DresgError  # noqa: E402
-from dresg_addon.imageio import read_rgb, write_image  # noqa: E402
-from dresg_addon.io import ClampedColoursWarning, InvalidSplatsWarning, read_scene_detailed, write_scene  # noqa: E402
-from dresg_addon.scene import SH_C0, GaussianScene  # noqa: E402
+from dresg_addon.scene.camera import Camera, look_at  # noqa: E402
+from dresg_addon.scene.camera_io import load_cameras, write_cameras_json  # noqa: E402
+from dresg_addon.scene.gaussians import SH_C0, GaussianScene  # noqa: E402
+from dresg_addon.scene.io import ClampedColoursWarning, InvalidSplatsWarning, read_scene_detailed, write_scene  # noqa: E402
+from dresg_addon.util.errors import DresgError  # noqa: E402
+from dresg_addon.util.imageio import read_rgb, write_image  # noqa: E402
 
 SEED = 20261124
 CASES_PER_FILE = 40

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from dresg_addon import imageio
-from dresg_addon.errors import ImageError
-from dresg_addon.imageio import read_image, read_rgb, resize_image, to_array, to_tensor, write_image
+from dresg_addon.util import imageio
+from dresg_addon.util.errors import ImageError
+from dresg_addon.util.imageio import read_image, read_rgb, resize_image, to_array, to_tensor, write_image
 
 
 @pytest.fixture
@@ -305,16 +305,16 @@ def test_import_is_light():
     import subprocess
     import sys
 
-    code = "import sys, dresg_addon.imageio; print(any(m in sys.modules for m in ('OpenImageIO', 'torch', 'bpy')))"
+    code = "import sys, dresg_addon.util.imageio; print(any(m in sys.modules for m in ('OpenImageIO', 'torch', 'bpy')))"
     result = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(imageio.__file__).parents[1]
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(imageio.__file__).parents[2]
     )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "False"
 
 
 def test_letterbox_keeps_the_aspect_and_centres_the_image():
-    from dresg_addon.imageio import letterbox
+    from dresg_addon.util.imageio import letterbox
 
     wide = np.zeros((10, 40, 3), np.float32)
     out = letterbox(wide, 20, 20)
@@ -327,8 +327,8 @@ def test_letterbox_keeps_the_aspect_and_centres_the_image():
 
 
 def test_a_large_image_reads_reduced_in_bands_and_a_huge_one_is_refused_from_its_header(tmp_path, monkeypatch):
-    import dresg_addon.imageio as imageio
-    from dresg_addon.imageio import read_image, read_rgb
+    import dresg_addon.util.imageio as imageio
+    from dresg_addon.util.imageio import read_image, read_rgb
 
     rng = np.random.default_rng(0)
     big = rng.uniform(0, 1, (300, 450, 3)).astype(np.float32)

@@ -10,18 +10,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import dresg_addon.io as scene_io
-from dresg_addon.errors import SceneFormatError
-from dresg_addon.io import (
+import dresg_addon.scene.io as scene_io
+from dresg_addon.scene.gaussians import SH_C0, GaussianScene
+from dresg_addon.scene.io import (
     InvalidSplatsWarning,
     SceneFormat,
     read_scene,
     read_scene_detailed,
     write_scene,
 )
-from dresg_addon.io.compressed_ply import morton_order
-from dresg_addon.io.ply_container import PLY_TYPES
-from dresg_addon.scene import SH_C0, GaussianScene
+from dresg_addon.scene.io.compressed_ply import morton_order
+from dresg_addon.scene.io.ply_container import PLY_TYPES
+from dresg_addon.util.errors import SceneFormatError
 
 REST = {0: 0, 1: 3, 2: 8, 3: 15}
 
@@ -603,7 +603,7 @@ def test_a_killed_writers_temporary_file_is_removed_by_the_next_write(tmp_path, 
     import subprocess
     import sys
 
-    from dresg_addon.fileutil import TEMP_MARK
+    from dresg_addon.util.fileutil import TEMP_MARK
 
     gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     dead = int(gone.stdout)  # a process that has exited

@@ -6,8 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from dresg_addon.errors import ConfigError
-from dresg_addon.losses import (
+from dresg_addon.method.losses import (
     SSIM_C1,
     SSIM_C2,
     FitLossWeights,
@@ -20,6 +19,7 @@ from dresg_addon.losses import (
     ssim_map,
     total_variation,
 )
+from dresg_addon.util.errors import ConfigError
 
 
 def _rand(*shape, seed=0, dtype=torch.float32):
@@ -172,7 +172,7 @@ def test_bad_inputs():
 
 
 def test_patch_feature_maps_describe_structure_not_palette():
-    from dresg_addon.losses import patch_feature_maps
+    from dresg_addon.method.losses import patch_feature_maps
 
     g = torch.Generator().manual_seed(0)
     ramp = torch.linspace(0, 1, 64)

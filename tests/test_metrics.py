@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from dresg_addon import metrics
-from dresg_addon.camera import Camera, look_at
-from dresg_addon.demo import demo_cameras, demo_scene
-from dresg_addon.errors import ConfigError, ModelError
+from dresg_addon.evaluation import metrics
 from dresg_addon.raster import render_scene
+from dresg_addon.scene.camera import Camera, look_at
+from dresg_addon.scene.demo import demo_cameras, demo_scene
+from dresg_addon.util.errors import ConfigError, ModelError
 
 F64 = torch.float64
 
@@ -526,7 +526,7 @@ def tiny_models(tmp_path_factory):
 
 
 def test_clip_style_score(tiny_models):
-    from dresg_addon import clip_dino
+    from dresg_addon.evaluation import clip_dino
 
     model = clip_dino.load_clip(tiny_models / "clip")
     assert model.image_size == 32 and model.mean == clip_dino.CLIP_MEAN
@@ -542,7 +542,7 @@ def test_clip_style_score(tiny_models):
 
 @pytest.mark.parametrize("name", ["vit", "dinov2"])
 def test_dino_content_score(tiny_models, name):
-    from dresg_addon import clip_dino
+    from dresg_addon.evaluation import clip_dino
 
     model = clip_dino.load_dino(tiny_models / name)
     assert model.image_size == (32 if name == "vit" else 224)
@@ -558,7 +558,7 @@ def test_dino_content_score(tiny_models, name):
 
 
 def test_model_errors(tiny_models, tmp_path):
-    from dresg_addon import clip_dino
+    from dresg_addon.evaluation import clip_dino
 
     with pytest.raises(ModelError, match="no such folder"):
         clip_dino.load_clip(tmp_path / "missing")

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from dresg_addon.errors import ConfigError, NumericalError
-from dresg_addon.optim import (
+from dresg_addon.method.optim import (
     FitOptimizerSettings,
     GeometryBounds,
     check_finite_gradients,
@@ -15,6 +14,7 @@ from dresg_addon.optim import (
     project_geometry_offsets_,
     scene_extent,
 )
+from dresg_addon.util.errors import ConfigError, NumericalError
 
 
 def test_adam_with_huge_gradients_moves_by_about_the_learning_rate():

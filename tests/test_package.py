@@ -24,8 +24,8 @@ def _modules_after(code: str) -> set[str]:
 
 def test_engine_imports_no_bpy():
     modules = _modules_after(
-        "import dresg_addon, dresg_addon.pipeline, dresg_addon.raster, dresg_addon.io, dresg_addon.camera_io, "
-        "dresg_addon.metrics, dresg_addon.proposal, dresg_addon.cli"
+        "import dresg_addon, dresg_addon.method.loop, dresg_addon.raster, dresg_addon.scene.io, dresg_addon.scene.camera_io, "
+        "dresg_addon.evaluation.metrics, dresg_addon.method.proposal, dresg_addon.cli"
     )
     assert "bpy" not in modules
     assert "diffusers" not in modules  # only the sd15 backend imports it, lazily
@@ -44,3 +44,72 @@ def test_every_command_has_help(command, capsys):
         main([command, "--help"])
     assert exit_info.value.code == 0
     assert command in capsys.readouterr().out
+
+
+# Bottom to top; a module may import its own layer and those below it, never one above.
+LAYERS = ("util", "scene", "raster", "method", "evaluation", "commands")
+ENGINE = REPO / "dresg_addon"
+
+
+def _layer(module: str) -> int:
+    """The layer of a dotted module name under dresg_addon (the package root and the CLI sit at the ends)."""
+    parts = module.split(".")[1:]
+    if not parts:
+        return 0  # dresg_addon/__init__.py: only the thread policy, from util
+    if parts[0] in ("cli", "__main__"):
+        return len(LAYERS) - 1
+    return LAYERS.index(parts[0])
+
+
+def _engine_imports():
+    """(importing module, imported module, line) for every import of the engine in the engine, nested ones included."""
+    import ast
+
+    for path in sorted(ENGINE.rglob("*.py")):
+        parts = list(path.relative_to(REPO).with_suffix("").parts)
+        package = parts[:-1]  # the package a relative import starts from, for modules and __init__ alike
+        module = ".".join(parts if parts[-1] != "__init__" else package)
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package[: len(package) - node.level + 1]
+                    target = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    target = node.module or ""
+                if target.split(".")[0] != "dresg_addon":
+                    continue
+                names = [f"{target}.{a.name}" for a in node.names] if target == "dresg_addon" else [target]
+                for name in names:
+                    yield module, name, node.lineno
+            elif isinstance(node, ast.Import):
+                for alias in node.names:
+                    if alias.name.split(".")[0] == "dresg_addon":
+                        yield module, alias.name, node.lineno
+
+
+def test_every_engine_module_belongs_to_a_layer():
+    for path in ENGINE.rglob("*.py"):
+        parts = path.relative_to(ENGINE).parts
+        assert len(parts) == 1 and parts[0] in ("__init__.py", "__main__.py", "cli.py") or parts[0] in LAYERS, path
+
+
+def test_imports_only_go_downward():
+    """method -> raster -> scene -> util (evaluation and commands above the method): a layer never imports one above."""
+    upward = [
+        f"{module} (line {line}) imports {target}"
+        for module, target, line in _engine_imports()
+        if _layer(target) > _layer(module)
+    ]
+    assert not upward, "\n".join(upward)
+    assert sum(1 for _ in _engine_imports()) > 100  # the walk saw the engine's imports
+
+
+def test_the_settings_enter_the_method_at_the_loop_only():
+    """One settings flow: StylizeConfig goes into loop.stylize (and views.select_active_views, an entry point
+    too); the steps below get their own typed parts of it, so no other method module imports it."""
+    importers = {
+        module
+        for module, target, _ in _engine_imports()
+        if module.startswith("dresg_addon.method.") and target == "dresg_addon.method.config"
+    }
+    assert importers == {"dresg_addon.method.loop"}

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dresg_addon.errors import NumericalError
-from dresg_addon.pcgrad import pcgrad_fuse, pcgrad_fuse_reference, pcgrad_weights
+from dresg_addon.method.pcgrad import pcgrad_fuse, pcgrad_fuse_reference, pcgrad_weights
+from dresg_addon.util.errors import NumericalError
 
 
 def _conflicting(num_views: int, n: int = 40, seed: int = 0, dtype=torch.float64) -> torch.Tensor:

@@ -19,15 +19,17 @@ import numpy as np
 import pytest
 import torch
 
-from dresg_addon.camera import Camera, look_at
-from dresg_addon.config import PRESETS, SCHEDULES, StylizeConfig
-from dresg_addon.errors import CameraError, CancelledError, ConfigError, NumericalError
-from dresg_addon.imageio import read_image
-from dresg_addon.pipeline import ActiveViews, Progress, StageUpdate, select_active_views, stylize
+from dresg_addon.evaluation.stability import scaled_scene
+from dresg_addon.method.bookkeeping import Progress, StageUpdate
+from dresg_addon.method.config import PRESETS, SCHEDULES, StylizeConfig
+from dresg_addon.method.loop import stylize
+from dresg_addon.method.schedule import stage_gammas, stage_timesteps
+from dresg_addon.method.views import ActiveViews, select_active_views
 from dresg_addon.raster import RasterSettings, render_scene
-from dresg_addon.scene import SH_C0, SH_REST_COUNTS, GaussianScene
-from dresg_addon.schedule import stage_gammas, stage_timesteps
-from dresg_addon.stability import scaled_scene
+from dresg_addon.scene.camera import Camera, look_at
+from dresg_addon.scene.gaussians import SH_C0, SH_REST_COUNTS, GaussianScene
+from dresg_addon.util.errors import CameraError, CancelledError, ConfigError, NumericalError
+from dresg_addon.util.imageio import read_image
 
 REPO = Path(__file__).resolve().parents[1]
 STYLE_RGB = np.array([0.1, 0.2, 0.9], dtype=np.float32)  # strong blue, far from the scene's warm colours
@@ -352,7 +354,7 @@ def test_a_checkpoint_of_other_inputs_or_an_unreadable_one_is_not_resumed(baseli
 
 
 def test_a_nan_stops_the_run_with_a_clear_error_and_keeps_the_last_good_checkpoint(baseline, tmp_path, monkeypatch):
-    import dresg_addon.losses as losses
+    import dresg_addon.method.losses as losses
 
     real_fit_loss = losses.fit_loss
     poisoned = threading.Event()
@@ -375,7 +377,7 @@ def test_a_nan_stops_the_run_with_a_clear_error_and_keeps_the_last_good_checkpoi
 
 
 def test_a_nan_before_any_checkpoint_says_so_without_naming_one(monkeypatch):
-    import dresg_addon.losses as losses
+    import dresg_addon.method.losses as losses
 
     real_fit_loss = losses.fit_loss
     monkeypatch.setattr(
@@ -442,7 +444,7 @@ def test_a_scene_without_sh_rest_gets_none():
 
 
 def test_one_active_view_runs_without_gradient_projection(monkeypatch):
-    import dresg_addon.pcgrad as pcgrad
+    import dresg_addon.method.pcgrad as pcgrad
 
     def refuse(*args, **kwargs):
         raise AssertionError("pcgrad_fuse must not run with one active view")
@@ -457,7 +459,7 @@ def test_one_active_view_runs_without_gradient_projection(monkeypatch):
 
 
 def test_pcgrad_fuses_the_colour_gradients_of_several_views_unless_switched_off(monkeypatch):
-    import dresg_addon.pcgrad as pcgrad
+    import dresg_addon.method.pcgrad as pcgrad
 
     calls = []
     real = pcgrad.pcgrad_fuse
@@ -621,7 +623,7 @@ def tiny_sd15(tmp_path_factory):
     from diffusers import AutoencoderKL, UNet2DConditionModel
     from transformers import CLIPTextConfig, CLIPTextModel
 
-    from dresg_addon.proposal.sd15_configs import SD15_TEXT_ENCODER_CONFIG, SD15_UNET_CONFIG, SD15_VAE_CONFIG
+    from dresg_addon.method.proposal.sd15_configs import SD15_TEXT_ENCODER_CONFIG, SD15_UNET_CONFIG, SD15_VAE_CONFIG
 
     torch.manual_seed(0)
     unet = UNet2DConditionModel.from_config(
@@ -681,10 +683,10 @@ def test_the_patch_backend_imports_neither_diffusers_nor_transformers():
     code = (
         "import sys, numpy as np\n"
         "sys.path.insert(0, sys.argv[1])\n"
-        "from dresg_addon.camera import Camera\n"
-        "from dresg_addon.config import StylizeConfig\n"
-        "from dresg_addon.pipeline import stylize\n"
-        "from dresg_addon.scene import GaussianScene\n"
+        "from dresg_addon.scene.camera import Camera\n"
+        "from dresg_addon.method.config import StylizeConfig\n"
+        "from dresg_addon.method.loop import stylize\n"
+        "from dresg_addon.scene.gaussians import GaussianScene\n"
         "rng = np.random.default_rng(0)\n"
         "means = (rng.uniform(-0.5, 0.5, (100, 3)) + [0, 0, 3]).astype(np.float32)\n"
         "quats = np.tile(np.float32([1, 0, 0, 0]), (100, 1))\n"
@@ -705,7 +707,7 @@ def test_the_patch_backend_imports_neither_diffusers_nor_transformers():
 
 
 def test_stage_improvement_is_the_drop_over_the_window():
-    from dresg_addon.pipeline import stage_improvement
+    from dresg_addon.method.loop import stage_improvement
 
     assert stage_improvement([1.0]) is None
     assert stage_improvement([1.0, 0.5]) is None  # one stage: the window of two is not full yet
@@ -733,10 +735,10 @@ def test_synth_stylization_is_as_consistent_across_novel_views_as_a_colour_trans
     """The fitted scene's short-range warp error on views it was not fitted on stays within 1.2x that of a
     per-splat colour transfer (whose error is the scene's own view-dependence floor), while it moves the
     renders toward the style more than the colour transfer does."""
-    from dresg_addon.color_transfer import transfer_scene_colors
-    from dresg_addon.demo import demo_scene, demo_style_image
-    from dresg_addon.metrics import consistency_rmse, sliced_wasserstein_patches
-    from dresg_addon.orbit import orbit_cameras
+    from dresg_addon.evaluation.metrics import consistency_rmse, sliced_wasserstein_patches
+    from dresg_addon.method.color_transfer import transfer_scene_colors
+    from dresg_addon.scene.demo import demo_scene, demo_style_image
+    from dresg_addon.scene.orbit import orbit_cameras
 
     scene = demo_scene()
     train = orbit_cameras(scene, 8, width=224, height=160)

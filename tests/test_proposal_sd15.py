@@ -20,9 +20,8 @@ from diffusers import AutoencoderKL, UNet2DConditionModel  # noqa: E402
 from safetensors.torch import load_file, save_file  # noqa: E402
 from transformers import CLIPTextConfig, CLIPTextModel  # noqa: E402
 
-from dresg_addon.errors import ConfigError, ModelError  # noqa: E402
-from dresg_addon.proposal import EnergyTerms, attention_energy, make_backend, optimize_proposal  # noqa: E402
-from dresg_addon.proposal.sd15 import (  # noqa: E402
+from dresg_addon.method.proposal import EnergyTerms, attention_energy, make_backend, optimize_proposal  # noqa: E402
+from dresg_addon.method.proposal.sd15 import (  # noqa: E402
     DEFAULT_LAYERS,
     SD15Backend,
     SD15Costs,
@@ -30,12 +29,13 @@ from dresg_addon.proposal.sd15 import (  # noqa: E402
     estimate_cpu_seconds,
     self_attention_names,
 )
-from dresg_addon.proposal.sd15_configs import (  # noqa: E402
+from dresg_addon.method.proposal.sd15_configs import (  # noqa: E402
     SD15_TEXT_ENCODER_CONFIG,
     SD15_UNET_CONFIG,
     SD15_VAE_CONFIG,
     SD15Configs,
 )
+from dresg_addon.util.errors import ConfigError, ModelError  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -414,7 +414,7 @@ def test_layer_and_device_settings_are_checked(tiny):
 
 def test_importing_the_proposal_package_does_not_import_diffusers():
     code = (
-        "import sys, dresg_addon.proposal, dresg_addon.proposal.sd15; "
+        "import sys, dresg_addon.method.proposal, dresg_addon.method.proposal.sd15; "
         "heavy = [m for m in ('diffusers', 'transformers', 'bpy') if m in sys.modules]; "
         "assert not heavy, heavy"
     )

@@ -8,8 +8,7 @@ import math
 import pytest
 import torch
 
-from dresg_addon.errors import ConfigError, NumericalError
-from dresg_addon.proposal.synth import (
+from dresg_addon.method.proposal.synth import (
     COVERED,
     IRLS_EPS,
     SynthBackend,
@@ -30,6 +29,7 @@ from dresg_addon.proposal.synth import (
     scale_ladder,
     to_style_colors,
 )
+from dresg_addon.util.errors import ConfigError, NumericalError
 
 F64 = torch.float64
 # Renders of the backend tests. 56 rows, not 48: a 48-row image trips the patch_grid offset bug with 33
@@ -610,9 +610,9 @@ def test_propose_on_a_render_smaller_than_the_largest_patch():
 
 def test_real_photo_takes_the_painting_texture(shared_data):
     pytest.importorskip("OpenImageIO")
-    from dresg_addon.imageio import read_rgb, resize_image, to_tensor
-    from dresg_addon.metrics import sliced_wasserstein_patches, ssim_per_image
-    from dresg_addon.schedule import stage_timesteps
+    from dresg_addon.evaluation.metrics import sliced_wasserstein_patches, ssim_per_image
+    from dresg_addon.method.schedule import stage_timesteps
+    from dresg_addon.util.imageio import read_rgb, resize_image, to_tensor
 
     def read(relative):
         return to_tensor(resize_image(read_rgb(shared_data(relative)), 224, 160)).clamp(0, 1)
@@ -633,7 +633,7 @@ def test_real_photo_takes_the_painting_texture(shared_data):
 
 
 def test_prepare_stage_fits_one_colour_map_for_every_view():
-    from dresg_addon.color_transfer import fit_color_map
+    from dresg_addon.method.color_transfer import fit_color_map
 
     views = [content_image(), content_image().flip(-1)]
     covers = [torch.ones(H, W), torch.ones(H, W)]

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from dresg_addon.camera import Camera, look_at
 from dresg_addon.raster import ColorOnlyRenderer, RasterSettings, colors_from_sh, render, render_scene
 from dresg_addon.raster.reference import reference_render
+from dresg_addon.scene.camera import Camera, look_at
 
 F64 = torch.float64
 
@@ -351,7 +351,7 @@ def _scene_arrays(scene):
 
 
 def test_real_luigi_matches_reference(shared_data):
-    from dresg_addon.io import read_scene
+    from dresg_addon.scene.io import read_scene
 
     scene = read_scene(shared_data("scenes/luigi.ply"))
     centre = np.median(scene.means, 0)
@@ -363,7 +363,7 @@ def test_real_luigi_matches_reference(shared_data):
 
 
 def test_real_bonsai_window_matches_reference(shared_data):
-    from dresg_addon.io import read_scene
+    from dresg_addon.scene.io import read_scene
 
     # Every 16th splat (17k): the reference projects Gaussians one at a time in Python.
     scene = read_scene(shared_data("scenes/bonsai-7k-mini.splat")).subset(slice(None, None, 16))

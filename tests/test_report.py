@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from dresg_addon import plot
+from dresg_addon.evaluation import plot
 
 
 def white(height=40, width=60):
@@ -110,7 +110,7 @@ def test_panel_draws_a_constant_series_as_one_row():
 
 
 def test_figure_tiles_panels_and_saves(tmp_path):
-    from dresg_addon.imageio import read_image
+    from dresg_addon.util.imageio import read_image
 
     panels = [plot.Panel(f"p{i}", "x", "y", ylog=True) for i in range(3)]
     for p in panels:
@@ -124,8 +124,8 @@ def test_figure_tiles_panels_and_saves(tmp_path):
 
 
 def test_raster_panel_and_table_follow_the_shared_speed_knobs():
+    from dresg_addon.evaluation.report import QUICK_RASTER_KNOBS, _knob_value_label, raster_panel, raster_table
     from dresg_addon.raster.knobs import SPEED_KNOBS
-    from dresg_addon.report import QUICK_RASTER_KNOBS, _knob_value_label, raster_panel, raster_table
 
     assert set(QUICK_RASTER_KNOBS) <= set(SPEED_KNOBS) and QUICK_RASTER_KNOBS[0][1] is None
     rows = [
@@ -150,9 +150,9 @@ def test_raster_panel_and_table_follow_the_shared_speed_knobs():
 
 
 def test_window_subset_keeps_every_gaussian_that_reaches_the_window():
+    from dresg_addon.evaluation.report import window_subset
+    from dresg_addon.evaluation.stability import tiny_camera, tiny_scene
     from dresg_addon.raster.reference import reference_render
-    from dresg_addon.report import window_subset
-    from dresg_addon.stability import tiny_camera, tiny_scene
 
     scene = tiny_scene(60)
     scene.log_scales -= 2.0  # splats of about one pixel: most cannot reach the window
@@ -174,8 +174,8 @@ def test_window_subset_keeps_every_gaussian_that_reaches_the_window():
 def test_evaluator_fast_path_matches_full_renders():
     from dataclasses import replace
 
-    from dresg_addon.report import ViewEvaluator
-    from dresg_addon.stability import tiny_cameras, tiny_scene
+    from dresg_addon.evaluation.report import ViewEvaluator
+    from dresg_addon.evaluation.stability import tiny_cameras, tiny_scene
 
     base = tiny_scene(40)
     style = np.random.default_rng(0).uniform(0, 1, (16, 16, 3)).astype(np.float32)
@@ -194,10 +194,10 @@ def test_evaluator_fast_path_matches_full_renders():
 
 def test_report_command_writes_four_sections_and_plots(tmp_path):
     from dresg_addon.cli import main
-    from dresg_addon.imageio import read_image, write_image
-    from dresg_addon.io import write_scene
-    from dresg_addon.report import draw_plots
-    from dresg_addon.stability import tiny_scene
+    from dresg_addon.evaluation.report import draw_plots
+    from dresg_addon.evaluation.stability import tiny_scene
+    from dresg_addon.scene.io import write_scene
+    from dresg_addon.util.imageio import read_image, write_image
 
     write_scene(tiny_scene(300), tmp_path / "tiny.ply")  # a small scene keeps the test fast
     style = np.random.default_rng(0).uniform(0, 1, (40, 56, 3)).astype(np.float32)

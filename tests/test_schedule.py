@@ -7,8 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from dresg_addon.errors import ConfigError
-from dresg_addon.schedule import (
+from dresg_addon.method.schedule import (
     RESIDUAL_SCHEDULES,
     alphas_cumprod,
     ddim_timesteps,
@@ -22,6 +21,7 @@ from dresg_addon.schedule import (
     stage_gammas,
     stage_timesteps,
 )
+from dresg_addon.util.errors import ConfigError
 
 # REFERENCE.md section 1: stage -> (t, abar, gamma) printed to 5 and 4 decimals.
 GAMMA_TABLE = {

@@ -1,4 +1,4 @@
-"""Every numerical-stability case of dresg_addon.stability runs as a test: finite and bounded results."""
+"""Every numerical-stability case of dresg_addon.evaluation.stability runs as a test: finite and bounded results."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from dresg_addon import stability
+from dresg_addon.evaluation import stability
 
 KNOWN_FAILURES: dict[str, str] = {}  # case function name -> reason, run as a strict xfail
 

@@ -5,8 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dresg_addon.errors import ConfigError, NumericalError
-from dresg_addon.targets import (
+from dresg_addon.method.targets import (
     LOGIT_EPS,
     image_residual_target,
     logit,
@@ -14,6 +13,7 @@ from dresg_addon.targets import (
     proposal_residual,
     residual_target,
 )
+from dresg_addon.util.errors import ConfigError, NumericalError
 
 EDGES = torch.tensor([0.0, 1e-6, LOGIT_EPS, 0.25, 0.5, 0.75, 1.0 - LOGIT_EPS, 1.0 - 1e-6, 1.0])
 

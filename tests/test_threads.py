@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from dresg_addon.threads import SPIN_COUNT, apply_thread_policy
+from dresg_addon.util.threads import SPIN_COUNT, apply_thread_policy
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -34,7 +34,7 @@ def test_importing_the_engine_sets_the_policy_before_torch():
 
 
 def test_threads_follow_the_cores_other_processes_leave():
-    from dresg_addon.threads import threads_for_load
+    from dresg_addon.util.threads import threads_for_load
 
     assert threads_for_load(0.0, 2, 2) == 2
     assert threads_for_load(0.7, 2, 2) == 2  # a part-time neighbour does not take a core
@@ -45,7 +45,7 @@ def test_threads_follow_the_cores_other_processes_leave():
 
 
 def test_core_monitor_sees_a_busy_neighbour():
-    from dresg_addon.threads import CoreMonitor
+    from dresg_addon.util.threads import CoreMonitor
 
     monitor = CoreMonitor()
     assert monitor.others_busy() is None  # too soon to say
@@ -62,7 +62,7 @@ def test_core_monitor_sees_a_busy_neighbour():
 
 def test_adapting_leaves_a_callers_choice_alone(monkeypatch):
     torch = pytest.importorskip("torch")
-    from dresg_addon import threads
+    from dresg_addon.util import threads
 
     class Busy:
         cores = 2

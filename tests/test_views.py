@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from dresg_addon.errors import CameraError, ConfigError, NumericalError
-from dresg_addon.views import (
+from dresg_addon.method.views import (
     COVERAGE_REACHED,
     GAIN_BELOW_THRESHOLD,
     VIEW_LIMIT_REACHED,
@@ -17,6 +16,7 @@ from dresg_addon.views import (
     select_views_reference,
     target_support,
 )
+from dresg_addon.util.errors import CameraError, ConfigError, NumericalError
 
 
 def _random_visibility(num_views: int, num_gaussians: int, seed: int) -> np.ndarray:

@@ -4,7 +4,7 @@ import textwrap
 
 import bpy
 
-from ..dresg_addon.splat_mesh import AXIS_LABELS
+from ..dresg_addon.scene.splat_mesh import AXIS_LABELS
 from ..operators import dependencies, job
 from ..operators.splat_object import (
     INPUT_MAX_SPLATS,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..errors import ConfigError
+from ..util.errors import ConfigError
 
 
 def add_scene_and_cameras(parser: argparse.ArgumentParser) -> None:
@@ -22,13 +22,13 @@ def add_scene_and_cameras(parser: argparse.ArgumentParser) -> None:
 
 def load_scene_and_cameras(args, default_orbit: int = 16):
     """(scene, cameras) from the shared options; orbit cameras when no camera file is given."""
-    from ..camera_io import load_cameras, resize_cameras
-    from ..io import clamped_note, read_scene_detailed
-    from ..orbit import orbit_cameras
+    from ..scene.camera_io import load_cameras, resize_cameras
+    from ..scene.io import clamped_note, read_scene_detailed
+    from ..scene.orbit import orbit_cameras
 
     if (args.width is None) != (args.height is None):
         raise ConfigError("--width and --height go together")
-    from ..camera_io import MAX_IMAGE_SIDE
+    from ..scene.camera_io import MAX_IMAGE_SIDE
 
     for flag, value in (("--width", args.width), ("--height", args.height)):
         if value is not None and not 1 <= value <= MAX_IMAGE_SIDE:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..io import SceneFormat, clamped_note, output_format, read_scene_detailed, write_scene
-from ..scene import GaussianScene
+from ..scene.gaussians import GaussianScene
+from ..scene.io import SceneFormat, clamped_note, output_format, read_scene_detailed, write_scene
 
 NAME = "convert"
 HELP = "Convert a scene between graphdeco .ply, PlayCanvas .compressed.ply and .splat (format by extension)."

@@ -4,7 +4,7 @@ Makes the demo scene, cameras and style image, stylizes the scene, and writes th
 per-stage log, before/after images of every camera, and ``before_after.png``: before | colour transfer |
 after | style from four novel views (between the cameras the scene was stylized from). The colour
 transfer column is the baseline a stylization must beat: the paper's post stage alone, one covariance
-colour map from the base renders to the style (:func:`~dresg_addon.color_transfer.transfer_scene_colors`).
+colour map from the base renders to the style (:func:`~dresg_addon.method.color_transfer.transfer_scene_colors`).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..config import PRESETS
+from ..method.config import PRESETS
 
 NAME = "demo"
 HELP = "Generate the built-in demo scene and style image, stylize it, and write before/after images."
@@ -31,14 +31,14 @@ def run(args) -> int:
     import numpy as np
     import torch
 
-    from ..camera_io import write_cameras_json
-    from ..color_transfer import transfer_scene_colors
-    from ..config import preset
-    from ..demo import demo_cameras, demo_scene, demo_style_image
-    from ..imageio import letterbox, write_image
-    from ..io import write_scene
-    from ..pipeline import stylize
+    from ..method.color_transfer import transfer_scene_colors
+    from ..method.config import preset
+    from ..method.loop import stylize
     from ..raster import RasterSettings, render_scene
+    from ..scene.camera_io import write_cameras_json
+    from ..scene.demo import demo_cameras, demo_scene, demo_style_image
+    from ..scene.io import write_scene
+    from ..util.imageio import letterbox, write_image
 
     out = Path(args.out)
     started = time.perf_counter()

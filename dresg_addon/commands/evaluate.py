@@ -23,7 +23,7 @@ import math
 import sys
 from pathlib import Path
 
-from ..errors import ConfigError, NumericalError
+from ..util.errors import ConfigError, NumericalError
 from .render import ORBIT_SIZE, _check_size_options, _device, _orbit_size, parse_background, parse_up
 
 NAME = "evaluate"
@@ -77,7 +77,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--patch-samples", type=int, default=16384, metavar="N", help="patches drawn per image (fixed positions)"
     )
     parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the projections and patch positions")
-    # Defaults come from dresg_addon.metrics at run time: importing it (torch) here would slow every command.
+    # Defaults come from dresg_addon.evaluation.metrics at run time: importing it (torch) here would slow every command.
     parser.add_argument(
         "--depth-tolerance",
         type=float,
@@ -97,7 +97,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _check_options(args: argparse.Namespace) -> tuple[float, float]:
     """Check the plain options; returns (depth tolerance, alpha threshold) with their defaults filled in."""
-    from ..metrics import ALPHA_THRESHOLD, DEPTH_TOLERANCE
+    from ..evaluation.metrics import ALPHA_THRESHOLD, DEPTH_TOLERANCE
 
     tolerance = DEPTH_TOLERANCE if args.depth_tolerance is None else args.depth_tolerance
     threshold = ALPHA_THRESHOLD if args.alpha_threshold is None else args.alpha_threshold
@@ -124,7 +124,7 @@ def _check_options(args: argparse.Namespace) -> tuple[float, float]:
 
 
 def _read(path: str, drop_invalid: bool, label: str):
-    from ..io import read_scene_detailed
+    from ..scene.io import read_scene_detailed
 
     result = read_scene_detailed(path, drop_invalid=drop_invalid)
     if result.dropped:
@@ -148,7 +148,7 @@ def _render_all(scene, cameras, settings, device, label: str):
 
 def _style_for(style, camera):
     """The style image resized (aspect kept) so its shorter side equals the camera's."""
-    from ..imageio import resize_image
+    from ..util.imageio import resize_image
 
     _, h, w = style.shape
     factor = min(camera.width, camera.height) / min(w, h)
@@ -163,11 +163,11 @@ def _mean(values) -> float | None:
 
 def evaluate(args: argparse.Namespace) -> dict:
     """Everything the command measures, as a JSON-ready dict (no NaN: missing values are None)."""
-    from .. import metrics
-    from ..camera_io import load_cameras
-    from ..imageio import STYLE_MAX_SIDE, read_rgb, to_tensor
-    from ..orbit import orbit_cameras
+    from ..evaluation import metrics
     from ..raster import RasterSettings
+    from ..scene.camera_io import load_cameras
+    from ..scene.orbit import orbit_cameras
+    from ..util.imageio import STYLE_MAX_SIDE, read_rgb, to_tensor
 
     tolerance, threshold = _check_options(args)
     background = parse_background(args.background)
@@ -176,7 +176,7 @@ def evaluate(args: argparse.Namespace) -> dict:
     device = _device(args.device)
     log = metrics.read_stylize_log(args.log).as_dict() if args.log else None
     if args.clip or args.dino:
-        from ..clip_dino import check_model_folder
+        from ..evaluation.clip_dino import check_model_folder
 
         for kind, path in (("clip", args.clip), ("dino", args.dino)):
             if path:
@@ -213,11 +213,11 @@ def evaluate(args: argparse.Namespace) -> dict:
     structure = [float(metrics.gradient_structure_similarity(a, b)) for a, b in zip(rgb, base_rgb)]
     clip_s = dino_c = [None] * len(cameras)
     if args.clip:
-        from ..clip_dino import clip_style_score, load_clip
+        from ..evaluation.clip_dino import clip_style_score, load_clip
 
         clip_s = clip_style_score(load_clip(args.clip, device), rgb, style).tolist()
     if args.dino:
-        from ..clip_dino import dino_content_score, load_dino
+        from ..evaluation.clip_dino import dino_content_score, load_dino
 
         dino_c = dino_content_score(load_dino(args.dino, device), rgb, base_rgb).tolist()
 
@@ -323,7 +323,7 @@ def format_report(report: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..fileutil import atomic_write_bytes
+    from ..util.fileutil import atomic_write_bytes
 
     report = evaluate(args)
     print(format_report(report))

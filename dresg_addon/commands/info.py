@@ -8,8 +8,8 @@ import sys
 
 import numpy as np
 
-from ..io import SceneReadResult, read_scene_detailed
-from ..io.splat import opacity_from_logit
+from ..scene.io import SceneReadResult, read_scene_detailed
+from ..scene.io.splat import opacity_from_logit
 
 NAME = "info"
 HELP = "Print a scene file's format, splat count, SH degree, bounds, scale and opacity statistics."

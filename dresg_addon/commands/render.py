@@ -26,11 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
-from ..camera_io import load_cameras
-from ..errors import ConfigError
-from ..io import read_scene_detailed
-from ..orbit import orbit_cameras
+from ..scene.camera import Camera
+from ..scene.camera_io import load_cameras
+from ..scene.io import read_scene_detailed
+from ..scene.orbit import orbit_cameras
+from ..util.errors import ConfigError
 
 NAME = "render"
 HELP = "Render a scene from its cameras (cameras.json, COLMAP, LLFF) or an orbit, one image per camera."
@@ -227,8 +227,8 @@ def _output_dir(path: str) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..imageio import write_image
     from ..raster import RasterSettings, render_scene
+    from ..util.imageio import write_image
 
     # Options first, so that a typo fails before a large scene is read.
     background = parse_background(args.background)

@@ -2,7 +2,7 @@
 
 Measures the rasterizer's error against its float64 reference, the stylization's metrics against
 wall time (presets and stage counts), the fit loss per stage and step, and the numerical-stability
-cases, and writes ``report.md`` with PNG plots (see :mod:`dresg_addon.report`).
+cases, and writes ``report.md`` with PNG plots (see :mod:`dresg_addon.evaluation.report`).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..report import ReportOptions, build_report
+    from ..evaluation.report import ReportOptions, build_report
 
     presets = None if args.presets is None else tuple(p.strip() for p in args.presets.split(",") if p.strip())
     options = ReportOptions(

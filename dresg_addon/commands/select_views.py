@@ -22,8 +22,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from ..config import StylizeConfig
-    from ..pipeline import select_active_views
+    from ..method.config import StylizeConfig
+    from ..method.views import select_active_views
 
     scene, cameras = load_scene_and_cameras(args)
     config = StylizeConfig(

@@ -8,8 +8,8 @@ import time
 from dataclasses import fields
 from pathlib import Path
 
-from ..config import DEFAULT_PRESET, PRESETS, PROPOSALS, SCHEDULES, SH_REST_MODES, preset
-from ..errors import ConfigError
+from ..method.config import DEFAULT_PRESET, PRESETS, PROPOSALS, SCHEDULES, SH_REST_MODES, preset
+from ..util.errors import ConfigError
 from ._common import add_scene_and_cameras, load_scene_and_cameras, parse_background
 
 NAME = "stylize"
@@ -127,9 +127,10 @@ def config_from_args(args):
 
 
 def run(args) -> int:
-    from ..imageio import STYLE_MAX_SIDE, read_rgb
-    from ..io import write_scene
-    from ..pipeline import check_run_settings, stylize
+    from ..method.config import check_run_settings
+    from ..method.loop import stylize
+    from ..scene.io import write_scene
+    from ..util.imageio import STYLE_MAX_SIDE, read_rgb
 
     config = config_from_args(args)
     check_run_settings(config)
@@ -151,7 +152,7 @@ def run(args) -> int:
     else:
         on_cpu = False
     if on_cpu and config.proposal == "sd15":
-        from ..proposal.sd15 import estimate_cpu_seconds
+        from ..method.proposal.sd15 import estimate_cpu_seconds
 
         estimate = estimate_cpu_seconds(
             views=config.max_views or 16,

@@ -1,5 +1,9 @@
 """Pure-torch differentiable Gaussian rasterizer (CPU by default, the same code on CUDA).
 
+One small function per stage (``projection``: EWA projection; ``rasterizer``: pairs, compositing, the
+colour-only fast path; ``sh``: spherical harmonics), a slow float64 ``reference`` that defines it, and the
+speed ``knobs`` the benchmark and the report measure. May import ``scene`` and ``util``.
+
 Semantics (the definition, which :mod:`.reference` implements slowly in float64):
 
 - EWA projection: the Jacobian's x/z and y/z are clamped to 1.3 tan(fov/2); the 2D covariance gets
@@ -9,7 +13,15 @@ Semantics (the definition, which :mod:`.reference` implements slowly in float64)
 - Front-to-back by depth; a sample with T (1 - alpha) < 1e-4 ends the pixel and is not added.
 """
 
-from .rasterizer import ColorOnlyRenderer, RasterSettings, RenderOutput, render, render_scene
+from .rasterizer import ColorOnlyRenderer, RasterSettings, RenderOutput, geometry_tensors, render, render_scene
 from .sh import colors_from_sh
 
-__all__ = ["ColorOnlyRenderer", "RasterSettings", "RenderOutput", "colors_from_sh", "render", "render_scene"]
+__all__ = [
+    "ColorOnlyRenderer",
+    "RasterSettings",
+    "RenderOutput",
+    "colors_from_sh",
+    "geometry_tensors",
+    "render",
+    "render_scene",
+]

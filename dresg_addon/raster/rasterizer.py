@@ -27,10 +27,11 @@ import math
 import warnings
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
-from ..camera import Camera
-from ..threads import adapt_torch_threads
+from ..scene.camera import Camera
+from ..util.threads import adapt_torch_threads
 from .projection import project_gaussians
 from .workers import cpu_workers, in_workers
 
@@ -501,8 +502,8 @@ def render(
 
 def _check_memory(camera: Camera, samples: float) -> None:
     """Raise CameraError, before allocating, when a render would need more memory than is available."""
-    from ..errors import CameraError
-    from ..machine import available_memory_bytes
+    from ..util.errors import CameraError
+    from ..util.machine import available_memory_bytes
 
     available = available_memory_bytes()
     needed = BYTES_PER_PIXEL * camera.height * camera.width + BYTES_PER_SAMPLE * samples
@@ -593,10 +594,19 @@ class ColorOnlyRenderer:
         return rgb.reshape(*self.shape, 3)
 
 
+def geometry_tensors(scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A GaussianScene's means [N, 3], quats [N, 4], log-scales [N, 3] and opacity logits [N] as float32 tensors."""
+
+    def t(a):
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+
+    return t(scene.means), t(scene.quats), t(scene.log_scales), t(scene.opacity_logits)
+
+
 def render_scene(
     scene, camera: Camera, settings: RasterSettings = RasterSettings(), visibility=None, device="cpu"
 ) -> RenderOutput:
-    """Render a :class:`~dresg_addon.scene.GaussianScene` (numpy) without gradients, in float32 output."""
+    """Render a :class:`~dresg_addon.scene.gaussians.GaussianScene` (numpy) without gradients, in float32 output."""
     from .sh import colors_from_sh
 
     def t(a):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..camera import Camera
+from ..scene.camera import Camera
 
 
 def _rotation(q):

@@ -1,0 +1,8 @@
+"""Measuring a stylization: how far it moved toward the painting, what it kept, what it cost.
+
+``metrics`` (pure functions: style distances, SSIM and gradient structure to the base render,
+cross-view consistency by exact warps, render speed, the run log's time and memory), ``clip_dino``
+(the paper's CLIP-S and DINO-C from local weights), ``report`` (the Markdown report with plots of error
+against run time), ``plot`` (those plots, with no plotting library), and ``stability`` (stiff and
+extreme inputs through every stage). May import ``method``, ``raster``, ``scene`` and ``util``.
+"""

@@ -1,0 +1,499 @@
+"""Weight-free evaluation metrics: style, content, cross-view consistency and efficiency.
+
+The paper's metrics (CLIP-S, DINO-C, RAFT-aligned RMSE; REFERENCE.md section 2) need weights that
+are not always at hand. These stand in for them, and :mod:`.clip_dino` computes the real CLIP-S and
+DINO-C when the user has local weights.
+
+=======================================  =========  ==================================================
+metric                                   better     compares
+=======================================  =========  ==================================================
+:func:`sliced_wasserstein_colors`        lower      colour distribution of a render and the style image (masks)
+:func:`sliced_wasserstein_patches`       lower      7 x 7 patch distribution, render and style image (masks)
+:func:`ssim_per_image`                   higher     stylized and base render from the same camera (mask)
+:func:`gradient_structure_similarity`    higher     stylized and base render from the same camera (mask)
+:func:`consistency_rmse`                 lower      a render warped exactly into a later view, and that view
+:func:`measure_render`                   higher FPS render speed and peak memory of a scene
+:func:`read_stylize_log`                 lower      optimisation time and peak memory from the stylizer's log
+=======================================  =========  ==================================================
+
+Images are torch [3, H, W] or [B, 3, H, W] in [0, 1] (``warp_to`` takes renders as [H, W, 3], the
+rasterizer's layout). Functions work in float32 and float64 and never return NaN: degenerate inputs
+(flat images, empty views) have defined values, and a consistency pair without valid pixels reports
+``None`` with a coverage of 0.
+
+The style and content metrics take optional coverage masks, [H, W] per image: bool, or alpha in
+[0, 1] where alpha > ``ALPHA_THRESHOLD`` counts as covered. An object rendered on a black background
+is then measured on the pixels it covers, not on the background. An image whose mask covers nothing
+is measured as if unmasked (all pixels), so the value stays defined.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import resource
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from ..method.losses import ssim_map
+from ..method.style_distance import (
+    ALPHA_THRESHOLD,
+    empirical_quantiles,
+    sliced_wasserstein,
+    sliced_wasserstein_colors,
+    sliced_wasserstein_patches,
+    sorted_projections,
+)
+from ..scene.camera import Camera
+from ..util.errors import ConfigError, with_path
+
+DEPTH_TOLERANCE = 0.03  # relative: |z_src - depth_src| <= 3% of z counts as the same surface
+GRADIENT_FLOOR = 1e-3  # the gradient magnitude (per pixel, [0, 1] images) below which an image is flat
+LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709
+
+# The style distances are the method's own (it stops its stages on them); they are metrics here too.
+__all__ = [
+    "ALPHA_THRESHOLD",
+    "ConsistencyResult",
+    "PairConsistency",
+    "RenderBenchmark",
+    "StylizeLogSummary",
+    "consistency_rmse",
+    "empirical_quantiles",
+    "gradient_structure_similarity",
+    "masked_rmse",
+    "measure_render",
+    "peak_rss_mb",
+    "read_stylize_log",
+    "sliced_wasserstein",
+    "sliced_wasserstein_colors",
+    "sliced_wasserstein_patches",
+    "sobel_gradients",
+    "sorted_projections",
+    "ssim_per_image",
+    "warp_to",
+]
+
+
+# ----------------------------------------------------------------------------------------------------
+# Content: SSIM and gradient structure to the base render
+
+
+def _pair_batch(a: torch.Tensor, b: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+    if a.shape != b.shape or a.ndim not in (3, 4) or a.shape[-3] != 3:
+        raise ValueError(
+            f"{name}: images must both be [3, H, W] or [B, 3, H, W], got {tuple(a.shape)}, {tuple(b.shape)}"
+        )
+    return (a[None], b[None]) if a.ndim == 3 else (a, b)
+
+
+def _pair_mask(mask, batch: torch.Tensor, name: str) -> torch.Tensor | None:  # -> [B, H, W] bool
+    """[H, W] (every pair) or [B, H, W] mask as bool (alpha > ``ALPHA_THRESHOLD``); an empty one covers all."""
+    if mask is None:
+        return None
+    b, _, h, w = batch.shape
+    mask = torch.as_tensor(mask, device=batch.device)
+    if tuple(mask.shape) not in ((h, w), (b, h, w)):
+        raise ValueError(f"{name}: mask must be [H, W] or [B, H, W] = {[b, h, w]}, got shape {tuple(mask.shape)}")
+    covered = (mask if mask.dtype == torch.bool else mask > ALPHA_THRESHOLD).expand(b, h, w)
+    return covered | ~covered.flatten(1).any(1)[:, None, None]
+
+
+def ssim_per_image(
+    a: torch.Tensor,  # [3, H, W] or [B, 3, H, W]
+    b: torch.Tensor,  # same shape
+    mask=None,  # [H, W] or [B, H, W]: bool, or alpha
+) -> torch.Tensor:  # scalar or [B]
+    """Mean SSIM of each image pair (the 3DGS SSIM of :func:`dresg_addon.method.losses.ssim_map`).
+
+    With ``mask`` (bool, or alpha > ``ALPHA_THRESHOLD``): both images are set to 0 outside it (as on
+    a black background, so the background cannot change the value), and SSIM = sum_{p covered, c}
+    SSIM_c(p) / (3 |covered|). An empty mask counts as covering every pixel.
+
+    >>> x = torch.rand(2, 3, 16, 16)
+    >>> ssim_per_image(x, x).tolist()
+    [1.0, 1.0]
+    >>> covered = torch.arange(16) < 8  # left half; the right halves differ
+    >>> round(float(ssim_per_image(x[0], x[1] * ~covered + x[0] * covered, covered.expand(16, 16))), 6)
+    1.0
+    """
+    ab, bb = _pair_batch(a, b, "ssim_per_image")
+    covered = _pair_mask(mask, ab, "ssim_per_image")
+    if covered is None:
+        out = ssim_map(ab, bb).flatten(1).mean(1)
+    else:
+        keep = covered[:, None]
+        smap = ssim_map(torch.where(keep, ab, 0.0), torch.where(keep, bb, 0.0))
+        out = torch.where(keep, smap, 0.0).flatten(1).sum(1) / (3 * covered.flatten(1).sum(1)).to(smap.dtype)
+    return out if a.ndim == 4 else out[0]
+
+
+def sobel_gradients(image: torch.Tensor) -> torch.Tensor:  # [B, 3, H, W] -> [B, 2, H, W]
+    """Sobel gradient (d/dx, d/dy) of the Rec. 709 luminance, kernels divided by 8, replicate padding.
+
+    With the 1/8 normalisation a linear ramp of slope s per pixel has gradient exactly s; replicate
+    padding keeps the image border from looking like an edge.
+    """
+    weights = torch.tensor(LUMINANCE, dtype=image.dtype, device=image.device).view(1, 3, 1, 1)
+    luma = (image * weights).sum(1, keepdim=True)
+    kx = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], dtype=image.dtype, device=image.device)
+    kernels = torch.stack([kx, kx.T])[:, None] / 8.0  # [2, 1, 3, 3]
+    return F.conv2d(F.pad(luma, (1, 1, 1, 1), mode="replicate"), kernels)
+
+
+def gradient_structure_similarity(
+    a: torch.Tensor,  # [3, H, W] or [B, 3, H, W]
+    b: torch.Tensor,  # same shape
+    floor: float = GRADIENT_FLOOR,
+    mask=None,  # [H, W] or [B, H, W]: bool, or alpha
+) -> torch.Tensor:  # scalar or [B]
+    """Gradient-structure similarity of two images, in [0, 1]; 1 for the same edges.
+
+    GS = (sum_p |g_a(p) . g_b(p)| + C) / sqrt((sum_p |g_a(p)|^2 + C)(sum_p |g_b(p)|^2 + C)), with g the
+    :func:`sobel_gradients` of the luminance and C = P floor^2 (P pixels). It is a magnitude-weighted
+    mean of |cos| between the gradient directions: strong edges count most, a global contrast change
+    and a per-pixel polarity flip (stylization remaps colours) do not lower it, and edges missing in
+    one image do. Cauchy-Schwarz bounds it by 1, reached (up to C) iff g_b = +-k g_a pixelwise, one k > 0.
+    Two flat images give 1; a flat image against a textured one gives about
+    sqrt(C / sum |g|^2), near 0.
+
+    With ``mask`` (bool, or alpha > ``ALPHA_THRESHOLD``): both images are set to 0 outside it (as on
+    a black background), and the sums run over the covered pixels only, with C = |covered| floor^2.
+    An empty mask counts as covering every pixel.
+
+    >>> x = torch.rand(3, 32, 32, dtype=torch.float64)
+    >>> round(float(gradient_structure_similarity(x, 0.2 + 0.5 * x)), 3)  # contrast change
+    1.0
+    >>> float(gradient_structure_similarity(x, torch.full_like(x, 0.5))) < 0.05  # structure gone
+    True
+    """
+    ab, bb = _pair_batch(a, b, "gradient_structure_similarity")
+    covered = _pair_mask(mask, ab, "gradient_structure_similarity")
+    if covered is None:
+        ga, gb = sobel_gradients(ab), sobel_gradients(bb)
+        c = ab.shape[-1] * ab.shape[-2] * floor**2
+        dot = (ga * gb).sum(1).abs().flatten(1).sum(1)
+        norm_a = (ga * ga).flatten(1).sum(1)
+        norm_b = (gb * gb).flatten(1).sum(1)
+    else:
+        keep = covered[:, None]
+        ga, gb = sobel_gradients(torch.where(keep, ab, 0.0)), sobel_gradients(torch.where(keep, bb, 0.0))
+        c = covered.flatten(1).sum(1).to(ga.dtype) * floor**2
+        dot = torch.where(covered, (ga * gb).sum(1).abs(), 0.0).flatten(1).sum(1)
+        norm_a = torch.where(covered, (ga * ga).sum(1), 0.0).flatten(1).sum(1)
+        norm_b = torch.where(covered, (gb * gb).sum(1), 0.0).flatten(1).sum(1)
+    out = ((dot + c) / torch.sqrt((norm_a + c) * (norm_b + c))).clamp(0.0, 1.0)
+    return out if a.ndim == 4 else out[0]
+
+
+# ----------------------------------------------------------------------------------------------------
+# Cross-view consistency: exact reprojection with rendered depth
+
+
+def _bilinear(image: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Sample [H, W, C] at continuous pixel coordinates u, v [H', W'] (pixel i's centre at i + 0.5)."""
+    h, w = image.shape[:2]
+    grid = torch.stack([2.0 * u / w - 1.0, 2.0 * v / h - 1.0], -1)[None].to(image.dtype)
+    out = F.grid_sample(image.permute(2, 0, 1)[None], grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return out[0].permute(1, 2, 0)
+
+
+def warp_to(
+    src_rgb: torch.Tensor,  # [Hs, Ws, 3]
+    src_depth: torch.Tensor,  # [Hs, Ws] camera-space z, 0 where nothing
+    src_cam: Camera,
+    dst_cam: Camera,
+    dst_depth: torch.Tensor,  # [Hd, Wd] camera-space z, 0 where nothing
+    src_alpha: torch.Tensor | None = None,  # [Hs, Ws]
+    dst_alpha: torch.Tensor | None = None,  # [Hd, Wd]
+    depth_tolerance: float = DEPTH_TOLERANCE,
+    alpha_threshold: float = ALPHA_THRESHOLD,
+) -> tuple[torch.Tensor, torch.Tensor]:  # [Hd, Wd, 3], [Hd, Wd] bool
+    """The source render seen from the destination camera, by exact reprojection, and its valid mask.
+
+    For each destination pixel centre (u, v) with rendered depth z (the rasterizer's alpha-weighted
+    camera-space z, not the ray length): X_dst = z ((u - cx) / fx, (v - cy) / fy, 1); X_src =
+    W2C_src C2W_dst X_dst; (u', v') = (fx' x / z' + cx', fy' y / z' + cy'); the source image is
+    sampled bilinearly at (u', v'). Valid where
+
+    - (u', v') lies within the source's pixel centres [0.5, W - 0.5] x [0.5, H - 0.5];
+    - z > 0, z' > 0 and the sampled source depth d' > 0;
+    - |z' - d'| <= ``depth_tolerance`` z' (the point is the surface the source sees, not occluded;
+      bilinear depth across a depth edge fails this test, which drops edge pixels conservatively);
+    - both alphas (when given) exceed ``alpha_threshold``, the source one sampled at (u', v').
+
+    Invalid pixels of ``warped`` hold 0.
+
+    >>> import numpy as np
+    >>> cam = Camera(8, 6, 10.0, 10.0, 4.0, 3.0, np.eye(4))
+    >>> rgb, depth = torch.rand(6, 8, 3), torch.full((6, 8), 2.0)
+    >>> warped, valid = warp_to(rgb, depth, cam, cam, depth)
+    >>> bool(valid.all()), bool(torch.allclose(warped, rgb, atol=1e-6))
+    (True, True)
+    """
+    hs, ws = src_cam.height, src_cam.width
+    hd, wd = dst_cam.height, dst_cam.width
+    for name, tensor, shape in (
+        ("src_rgb", src_rgb, (hs, ws, 3)),
+        ("src_depth", src_depth, (hs, ws)),
+        ("dst_depth", dst_depth, (hd, wd)),
+        ("src_alpha", src_alpha, (hs, ws)),
+        ("dst_alpha", dst_alpha, (hd, wd)),
+    ):
+        if tensor is not None and tuple(tensor.shape) != shape:
+            raise ValueError(f"warp_to: {name} has shape {tuple(tensor.shape)}, expected {shape} from the camera")
+    if not depth_tolerance >= 0.0:
+        raise ValueError(f"warp_to: depth_tolerance must be >= 0, got {depth_tolerance}")
+    device = src_rgb.device
+    f64 = torch.float64
+    z = dst_depth.to(f64)
+    v, u = torch.meshgrid(
+        torch.arange(hd, dtype=f64, device=device) + 0.5,
+        torch.arange(wd, dtype=f64, device=device) + 0.5,
+        indexing="ij",
+    )
+    points = torch.stack([(u - dst_cam.cx) / dst_cam.fx * z, (v - dst_cam.cy) / dst_cam.fy * z, z], -1)
+    transform = torch.as_tensor(src_cam.world_to_camera @ dst_cam.camera_to_world, dtype=f64, device=device)
+    src_points = points @ transform[:3, :3].T + transform[:3, 3]
+    zs = src_points[..., 2]
+    z_safe = torch.where(zs > 0, zs, 1.0)
+    us = src_cam.fx * src_points[..., 0] / z_safe + src_cam.cx
+    vs = src_cam.fy * src_points[..., 1] / z_safe + src_cam.cy
+    # Far off-screen points: keep the sampling grid finite (they are invalid anyway).
+    us, vs = us.clamp(-1.0, ws + 1.0), vs.clamp(-1.0, hs + 1.0)
+    valid = (z > 0) & (zs > 0) & (us >= 0.5) & (us <= ws - 0.5) & (vs >= 0.5) & (vs <= hs - 0.5)
+    stack = [src_rgb.to(f64), src_depth.to(f64)[..., None]]
+    if src_alpha is not None:
+        stack.append(src_alpha.to(f64)[..., None])
+    sampled = _bilinear(torch.cat(stack, -1), us, vs)
+    sampled_depth = sampled[..., 3]
+    valid &= (sampled_depth > 0) & ((zs - sampled_depth).abs() <= depth_tolerance * zs)
+    if src_alpha is not None:
+        valid &= sampled[..., 4] > alpha_threshold
+    if dst_alpha is not None:
+        valid &= dst_alpha > alpha_threshold
+    warped = torch.where(valid[..., None], sampled[..., :3], 0.0).to(src_rgb.dtype)
+    return warped, valid
+
+
+def masked_rmse(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float | None:  # [H, W, 3] x2, [H, W]
+    """sqrt(sum_{p in mask} |a(p) - b(p)|^2 / (3 |mask|)), or None when the mask is empty."""
+    count = int(mask.sum())
+    if count == 0:
+        return None
+    diff = (a.to(torch.float64) - b.to(torch.float64))[mask]
+    return float(torch.sqrt((diff**2).sum() / (3 * count)))
+
+
+@dataclass
+class PairConsistency:
+    source: int
+    target: int
+    rmse: float | None  # None: no valid pixel
+    coverage: float  # fraction of the target's pixels that are valid
+
+
+@dataclass
+class ConsistencyResult:
+    gap: int
+    rmse: float | None  # mean over the pairs with valid pixels; None when there are none
+    coverage: float  # mean coverage over all pairs (0 when there are no pairs)
+    pairs: list[PairConsistency]
+
+    def as_dict(self) -> dict:
+        return {
+            "gap": self.gap,
+            "rmse": self.rmse,
+            "coverage": self.coverage,
+            "pairs": [vars(p).copy() for p in self.pairs],
+        }
+
+
+def consistency_rmse(
+    renders,  # N x [H, W, 3]
+    depths,  # N x [H, W]
+    alphas,  # N x [H, W] (or None: no alpha test)
+    cameras: list[Camera],
+    gap: int,
+    depth_tolerance: float = DEPTH_TOLERANCE,
+    alpha_threshold: float = ALPHA_THRESHOLD,
+) -> ConsistencyResult:
+    """Cross-view drift along an ordered camera path: warp view i into view i + gap, masked RMSE.
+
+    RMSE_gap = mean over pairs (i, i + gap), i = 0 .. N - gap - 1, of the :func:`masked_rmse` between
+    :func:`warp_to` (view i -> view i + gap) and view i + gap, over the valid mask. Short-term
+    consistency uses gap 1, long-term gap N // 2 (the paper's protocol with an exact warp for RAFT
+    flow). Pairs without valid pixels are left out of the mean; with none at all the RMSE is None.
+
+    >>> import numpy as np
+    >>> cams = [Camera(8, 6, 10.0, 10.0, 4.0, 3.0, np.eye(4))] * 3
+    >>> rgb, depth = torch.rand(6, 8, 3), torch.full((6, 8), 2.0)
+    >>> result = consistency_rmse([rgb] * 3, [depth] * 3, None, cams, gap=1)
+    >>> result.rmse, result.coverage, len(result.pairs)
+    (0.0, 1.0, 2)
+    """
+    n = len(cameras)
+    if len(renders) != n or len(depths) != n or (alphas is not None and len(alphas) != n):
+        raise ValueError(f"consistency_rmse: {n} cameras but {len(renders)} renders and {len(depths)} depths")
+    if isinstance(gap, bool) or not isinstance(gap, int) or gap < 1:
+        raise ValueError(f"consistency_rmse: gap must be a positive integer, got {gap!r}")
+    pairs = []
+    for i in range(n - gap):
+        j = i + gap
+        warped, valid = warp_to(
+            renders[i],
+            depths[i],
+            cameras[i],
+            cameras[j],
+            depths[j],
+            None if alphas is None else alphas[i],
+            None if alphas is None else alphas[j],
+            depth_tolerance,
+            alpha_threshold,
+        )
+        pairs.append(PairConsistency(i, j, masked_rmse(warped, renders[j], valid), float(valid.float().mean())))
+    values = [p.rmse for p in pairs if p.rmse is not None]
+    rmse = sum(values) / len(values) if values else None
+    coverage = sum(p.coverage for p in pairs) / len(pairs) if pairs else 0.0
+    return ConsistencyResult(gap, rmse, coverage, pairs)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Efficiency
+
+
+@dataclass
+class StylizeLogSummary:
+    optimisation_seconds: float | None  # cumulative "seconds" at the end (summed over resumed runs)
+    peaks: dict[str, float]  # the largest value of each numeric "peak_*" key (peak_rss_mb, ...)
+    stages: list  # distinct "stage" values in order of appearance
+    records: int  # lines read
+    skipped: int  # lines that were not a JSON object (e.g. a line cut short by a killed run)
+
+    def as_dict(self) -> dict:
+        return {
+            "optimisation_seconds": self.optimisation_seconds,
+            **self.peaks,
+            "stages": self.stages,
+            "records": self.records,
+            "skipped_lines": self.skipped,
+        }
+
+
+def _finite_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def read_stylize_log(path: str | os.PathLike) -> StylizeLogSummary:
+    """Total optimisation time and peak memory from a stylize log (JSON lines).
+
+    Each line is a dict written by the stylizer, with "stage", "seconds" (cumulative wall time) and
+    "peak_rss_mb" among its keys. Missing keys and non-numeric values are ignored; unreadable lines
+    are counted in ``skipped``. Time = the last "seconds" of each run, summed: a resumed run restarts
+    its clock, which shows as "seconds" going down. Each "peak_*" key = its max.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(with_path(path, "stylize log not found")) from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError(with_path(path, f"cannot read the stylize log ({error.__class__.__name__})")) from None
+    finished, current, peaks, stages, records, skipped = 0.0, None, {}, [], 0, 0
+    for line in text.splitlines():
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            record = None
+        if not isinstance(record, dict):
+            skipped += 1
+            continue
+        records += 1
+        if _finite_number(record.get("seconds")):
+            value = float(record["seconds"])
+            if current is not None and value < current:  # a resumed run: its clock started again
+                finished += current
+            current = value
+        for key, value in record.items():
+            if key.startswith("peak_") and _finite_number(value):
+                peaks[key] = max(peaks.get(key, float("-inf")), float(value))
+        stage = record.get("stage")
+        if isinstance(stage, str | int) and not isinstance(stage, bool) and stage not in stages:
+            stages.append(stage)
+    seconds = None if current is None else finished + current
+    return StylizeLogSummary(seconds, peaks, stages, records, skipped)
+
+
+def _reset_peak_rss() -> bool:
+    """Reset the kernel's peak-RSS counter of this process (Linux); False where that is not possible."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process in MB (since the last reset where supported)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    # ru_maxrss is in kB on Linux, bytes on macOS.
+    scale = 1024.0 * 1024.0 if os.uname().sysname == "Darwin" else 1024.0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / scale
+
+
+@dataclass
+class RenderBenchmark:
+    fps: float
+    frames: int
+    seconds: float
+    peak_rss_mb: float  # process peak during the benchmark (whole-process peak where no reset exists)
+    peak_cuda_mb: float | None  # torch's peak allocation on CUDA; None on the CPU
+    rss_reset: bool  # whether peak_rss_mb covers only the benchmark
+
+    def as_dict(self) -> dict:
+        return vars(self).copy()
+
+
+def measure_render(scene, cameras: list[Camera], settings=None, repeats: int = 2, device="cpu") -> RenderBenchmark:
+    """Render FPS and peak memory of ``scene`` with the project's rasterizer.
+
+    Renders every camera ``repeats`` times after one warm-up frame; FPS = frames / wall seconds
+    (synchronised on CUDA). Memory: peak RSS of the process during the loop (Linux resets the
+    counter first) and, on CUDA, torch's peak allocation.
+    """
+    from ..raster import RasterSettings, render_scene
+
+    if repeats < 1 or not cameras:
+        raise ValueError(f"measure_render needs cameras and repeats >= 1, got {len(cameras)} cameras, {repeats}")
+    settings = settings or RasterSettings()
+    cuda = torch.device(device).type == "cuda"
+    render_scene(scene, cameras[0], settings, device=device)
+    if cuda:
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+    reset = _reset_peak_rss()
+    frames = 0
+    start = time.perf_counter()
+    for _ in range(repeats):
+        for camera in cameras:
+            render_scene(scene, camera, settings, device=device)
+            frames += 1
+    if cuda:
+        torch.cuda.synchronize(device)
+    seconds = max(time.perf_counter() - start, 1e-9)
+    peak_cuda = torch.cuda.max_memory_allocated(device) / 2**20 if cuda else None
+    return RenderBenchmark(frames / seconds, frames, seconds, peak_rss_mb(), peak_cuda, reset)

@@ -1,0 +1,206 @@
+"""The method's settings as one typed dataclass with the paper's defaults; presets are instances.
+
+The CLI and the Blender panel are thin layers over :class:`StylizeConfig`. It enters a run once, at
+:func:`~dresg_addon.method.loop.stylize` (or :func:`~dresg_addon.method.views.select_active_views`); each
+step then receives its own part (``raster_settings``, ``view_selection``, ``loss_weights``,
+``optimizer_settings``), so no other method module imports this one.
+
+Lengths. The paper's geometry numbers (mean-offset lr 1e-3, bound +-0.05; REFERENCE.md Sec. 2) are
+absolute lengths in its scenes' units, where a scene is about a unit to a few units across. Here the
+mean-offset ``geometry_lr`` and ``mean_bound`` are relative to the scene extent (the robust radius of
+the fitted Gaussians' centres, :func:`dresg_addon.method.optim.scene_extent`), with a reference extent of 1:
+the optimiser uses ``geometry_lr x extent`` and ``mean_bound x extent`` for the mean offsets, so a scene
+of extent 1 gets the paper's numbers unchanged and a scene scaled by s moves its splats s times as far
+(as 3DGS scales its position lr by the camera extent). ``scene_extent > 0`` fixes the extent instead of
+measuring it (``scene_extent=1`` gives the paper's absolute numbers on any scene). Log-scale and
+quaternion offsets are scale-free and use their numbers as they are.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+
+from ..util.errors import ConfigError
+
+SCHEDULES = ("snr-balanced", "fixed-1", "fixed-2", "triangle", "timestep-cosine")
+PROPOSALS = ("synth", "sd15")
+SH_REST_MODES = ("keep", "zero")
+
+
+@dataclass(frozen=True)
+class StylizeConfig:
+    # Schedule (Sec. 4.2, Algorithm 1): N = stages x updates DDIM states out of a 200-step schedule.
+    stages: int = 20
+    updates_per_stage: int = 10
+    ddim_steps: int = 200
+    schedule: str = "snr-balanced"  # residual strength: snr-balanced | fixed-1 | fixed-2 | triangle | timestep-cosine
+    logit_space: bool = True  # False: the image-space scaling ablation
+    # Proposal (Sec. 4.1)
+    proposal: str = "synth"  # synth | sd15
+    model_path: str = ""  # local SD1.5 folder or .safetensors (sd15 only)
+    proposal_width: int = 448
+    proposal_height: int = 320
+    content_weight: float = 0.15  # w_c
+    latent_lr: float = 0.05
+    use_content_query: bool = True  # ablation "w/o Q_c" when False
+    use_style_keys: bool = True  # ablation "w/o K_s"
+    use_style_values: bool = True  # ablation "w/o V_s"
+    feedback: bool = True  # ablation "w/o feedback": keep optimising the first latent
+    # Fitting (Sec. 4.3)
+    fit_steps: int = 30
+    post_steps: int = 50  # after covariance colour transfer
+    color_lr: float = 0.05
+    geometry_lr: float = 1e-3  # mean offsets: x the scene extent (see the module docstring)
+    optimize_geometry: bool = True
+    mean_bound: float = 0.05  # x the scene extent
+    log_scale_bound: float = 0.05
+    quat_bound: float = 0.02
+    pcgrad: bool = True  # ablation "w/o colour-gradient projection" when False
+    pcgrad_eps: float = 1e-12
+    lambda_ssim: float = 0.2
+    lambda_tv: float = 0.01
+    lambda_feature: float = 0.01
+    dino_path: str = ""  # local DINO weights for the feature loss; empty: patch features
+    render_scale: float = 1.0  # render resolution relative to the cameras' own
+    scene_extent: float = 0.0  # the length mean offsets are relative to; 0: measured (optim.scene_extent)
+    # View selection (Sec. 4.3)
+    max_views: int = 0  # 0: no cap
+    w_min: float = 1e-4
+    rho: float = 0.98
+    coverage_stop: float = 0.9999
+    gain_threshold: float = 0.001
+    # Leaving out what a scene does not need: stop the stages once the style distance of the active
+    # views (7x7 patch sliced Wasserstein to the style, covered pixels, at the proposal size) improves
+    # by less than this fraction over two stages (loop.stage_improvement); 0 runs every stage.
+    # The post stage always runs.
+    early_stop: float = 0.0
+    # Scene handling
+    sh_rest: str = "zero"  # keep | zero: what happens to view-dependent SH bands of a stylized scene
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    near: float = 0.01
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.stages >= 1, "stages must be >= 1"),
+            (self.updates_per_stage >= 1, "updates_per_stage must be >= 1"),
+            (self.stages * self.updates_per_stage <= self.ddim_steps, "stages x updates_per_stage exceeds ddim_steps"),
+            (self.schedule in SCHEDULES, f"schedule must be one of {', '.join(SCHEDULES)}"),
+            (self.proposal in PROPOSALS, f"proposal must be one of {', '.join(PROPOSALS)}"),
+            (self.sh_rest in SH_REST_MODES, f"sh_rest must be one of {', '.join(SH_REST_MODES)}"),
+            (self.fit_steps >= 0 and self.post_steps >= 0, "fit_steps and post_steps must be >= 0"),
+            (self.proposal_width >= 8 and self.proposal_height >= 8, "proposal size must be at least 8x8"),
+            (self.render_scale > 0, "render_scale must be > 0"),
+            (0 < self.rho <= 1, "rho must be in (0, 1]"),
+            (self.near > 0, "near must be > 0"),
+            (self.scene_extent >= 0 and math.isfinite(self.scene_extent), "scene_extent must be >= 0 (0: measured)"),
+            (0 <= self.early_stop < 1, "early_stop must be in [0, 1) (0: off)"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ConfigError(f"invalid setting: {message}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> StylizeConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(f"unknown setting(s): {', '.join(unknown)}")
+        if "background" in values:
+            values = {**values, "background": tuple(values["background"])}
+        return cls(**values)
+
+    def with_(self, **changes) -> StylizeConfig:
+        return replace(self, **changes)
+
+    # The part of the settings each step of the loop receives (each step's own typed settings).
+
+    def raster_settings(self):
+        """What every render of the run uses: near plane and background."""
+        from ..raster import RasterSettings
+
+        return RasterSettings(near=self.near, background=tuple(self.background))
+
+    def view_selection(self):
+        """Sec. 4.3's selection constants (w_min, rho, stops) and the view cap."""
+        from .views import ViewSelectionSettings
+
+        return ViewSelectionSettings(
+            min_support=self.w_min,
+            target_fraction=self.rho,
+            coverage_stop=self.coverage_stop,
+            min_gain=self.gain_threshold,
+            max_views=self.max_views or None,
+        )
+
+    def loss_weights(self):
+        """The lambdas of the fit loss (Eq. 16)."""
+        from .losses import FitLossWeights
+
+        return FitLossWeights(dssim=self.lambda_ssim, tv=self.lambda_tv, feature=self.lambda_feature)
+
+    def optimizer_settings(self, extent: float):
+        """Adam learning rates and geometry bounds, mean offsets scaled by the scene ``extent``."""
+        from .optim import FitOptimizerSettings, GeometryBounds
+
+        bounds = GeometryBounds(self.mean_bound, self.log_scale_bound, self.quat_bound)
+        return FitOptimizerSettings(self.color_lr, self.geometry_lr, bounds=bounds, extent=extent)
+
+
+def check_run_settings(config: StylizeConfig) -> None:
+    """Raise ConfigError for settings that are valid on their own but cannot run (checked before any work)."""
+    if config.proposal == "synth" and not (config.use_style_keys and config.use_style_values):
+        raise ConfigError(
+            "the w/o K_s and w/o V_s ablations change the attention energy; the synth backend has none "
+            "(use --proposal sd15 for them)"
+        )
+    if config.proposal == "sd15":
+        if not config.model_path:
+            raise ConfigError("the sd15 proposal backend needs a local model path (--model PATH)")
+        if config.proposal_width % 8 or config.proposal_height % 8:
+            raise ConfigError(
+                f"the sd15 proposal size must be a multiple of 8 (got {config.proposal_width}x"
+                f"{config.proposal_height}), e.g. 448x320"
+            )
+
+
+PRESETS: dict[str, StylizeConfig] = {
+    # The paper's exact defaults: 20 stages x 10 updates, 30 fit steps, 448x320, geometry offsets on.
+    "paper": StylizeConfig(),
+    # The paper's schedule with geometry frozen: fitting takes the colour-only fast path (a sparse
+    # multiply per view instead of a full re-render), which makes the paper's schedule practical on a CPU.
+    "cpu": StylizeConfig(optimize_geometry=False),
+    # What ``stylize`` runs by default: the quality plateau of the synth backend on a CPU.
+    "standard": StylizeConfig(
+        stages=6,
+        updates_per_stage=6,
+        fit_steps=30,
+        post_steps=30,
+        content_weight=0.3,
+        max_views=16,
+        optimize_geometry=False,
+        early_stop=0.01,
+    ),
+    # A quick look: fewer stages, updates, fit steps and views.
+    "preview": StylizeConfig(
+        stages=4,
+        updates_per_stage=4,
+        fit_steps=15,
+        post_steps=15,
+        content_weight=0.3,
+        max_views=8,
+        optimize_geometry=False,
+        early_stop=0.01,
+    ),
+}
+DEFAULT_PRESET = "standard"
+
+
+def preset(name: str, **overrides) -> StylizeConfig:
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r} (choose {', '.join(PRESETS)})")
+    return PRESETS[name].with_(**overrides)

@@ -1,0 +1,232 @@
+"""Multi-view fitting (Sec. 4.3): what is optimised, how each active view renders it, and one step of it.
+
+- :func:`seen_gaussians`: the Gaussians the active views see; the rest is left out of fitting.
+- :class:`FitState`: RGB colours and bounded geometry offsets of the seen Gaussians.
+- :class:`ViewRenderer`: each active view's image of a state, colour-only (a cached sparse matrix per
+  view, geometry frozen) or a full render with the offsets applied.
+- :class:`MultiViewFit`: one Adam step of the fit loss (Eq. 16) over all views, the colour gradients
+  fused by PCGrad (Eqs. 17-20) and geometry gradients averaged, then colours clamped and offsets
+  projected into their bounds.
+- :func:`result_scene`: the input scene with the fitted state written back.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from ..raster import ColorOnlyRenderer, RasterSettings, geometry_tensors, render
+from ..raster.sh import SH_C0, sh_basis
+from ..scene.camera import Camera
+from ..scene.gaussians import GaussianScene
+from ..util.errors import CameraError, NumericalError
+from . import losses, pcgrad
+from .optim import GeometryBounds, check_finite_gradients, project_geometry_offsets_
+
+
+@dataclass
+class FitState:
+    """The optimised state: RGB colours and bounded geometry offsets of the seen Gaussians."""
+
+    seen: torch.Tensor  # [M] indices into the scene
+    colors: torch.Tensor  # [M, 3] RGB (render colour before the view-dependent SH rest)
+    d_means: torch.Tensor | None  # [M, 3]
+    d_log_scales: torch.Tensor | None
+    d_quats: torch.Tensor | None
+
+    @classmethod
+    def start(cls, scene: GaussianScene, seen: torch.Tensor, geometry: bool) -> FitState:
+        """The scene's own colours (SH DC as RGB) and zero offsets (None with geometry frozen)."""
+        base_colors = torch.from_numpy(np.maximum(0.5 + SH_C0 * scene.sh_dc, 0.0).astype(np.float32))[seen]
+
+        def offsets(width):
+            return torch.zeros(seen.numel(), width, requires_grad=True) if geometry else None
+
+        return cls(seen, base_colors.clone().requires_grad_(True), offsets(3), offsets(3), offsets(4))
+
+    def params(self):
+        return [p for p in (self.colors, self.d_means, self.d_log_scales, self.d_quats) if p is not None]
+
+    def geometry(self):
+        return [p for p in (self.d_means, self.d_log_scales, self.d_quats) if p is not None]
+
+
+def seen_gaussians(
+    scene: GaussianScene, cameras: Sequence[Camera], settings: RasterSettings, geometry: bool
+) -> tuple[torch.Tensor, list[ColorOnlyRenderer] | None]:
+    """The sorted indices [M] of the Gaussians the cameras see, and with geometry frozen the cameras'
+    full-scene colour-only renderers (which found them, so the fit needs no second rasterization)."""
+    means, quats, log_scales, logits = geometry_tensors(scene)
+    fast = None
+    if geometry:
+        seen_mask = torch.zeros(len(scene), dtype=torch.bool)
+        for camera in cameras:
+            with torch.no_grad():
+                vis = render(
+                    means, quats, log_scales, logits, torch.zeros_like(means), camera, settings, visibility="all"
+                )
+            seen_mask |= vis.visibility > 0
+    else:
+        fast = [ColorOnlyRenderer(means, quats, log_scales, logits, camera, settings) for camera in cameras]
+        seen_mask = torch.stack([f.seen for f in fast]).any(0)
+    seen = torch.nonzero(seen_mask).squeeze(-1)
+    if seen.numel() == 0:
+        raise CameraError("the active cameras see none of the scene's Gaussians")
+    return seen, fast
+
+
+class ViewRenderer:
+    """Renders the active views of the seen Gaussians, colour-only (cached) or with geometry."""
+
+    def __init__(
+        self,
+        scene: GaussianScene,
+        cameras: list[Camera],
+        seen: torch.Tensor,  # [M] sorted indices of the Gaussians the active views see
+        settings: RasterSettings,
+        keep_sh_rest: bool,  # render the scene's view-dependent SH rest bands on top of the fitted colour
+        fast: list[ColorOnlyRenderer] | None,  # full-scene colour-only renderers (geometry frozen), else None
+    ):
+        means, quats, log_scales, logits = geometry_tensors(scene)
+        self.means, self.quats = means[seen], quats[seen]
+        self.log_scales, self.logits = log_scales[seen], logits[seen]
+        self.cameras = cameras
+        self.settings = settings
+        # View-dependent colour of kept SH rest bands: a constant per-view offset on the RGB colour.
+        self.offsets: list[torch.Tensor | None] = [None] * len(cameras)
+        if scene.sh_rest is not None and keep_sh_rest:
+            rest = torch.from_numpy(scene.sh_rest[seen.numpy()]).float()
+            degree = scene.sh_degree
+            for v, camera in enumerate(cameras):
+                dirs = self.means - torch.as_tensor(camera.center, dtype=torch.float32)
+                dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+                basis = sh_basis(dirs, degree)[:, 1:]  # [M, K]
+                self.offsets[v] = (basis[:, :, None] * rest).sum(1)
+        # Colour-only: the full-scene renderers that found the seen set, narrowed to it (no second rasterization).
+        self.fast = None if fast is None else [f.restrict(seen) for f in fast]
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def __call__(self, v: int, fit: FitState) -> torch.Tensor:  # -> [3, H, W]
+        colors = fit.colors if self.offsets[v] is None else fit.colors + self.offsets[v]
+        colors = colors.clamp_min(0.0)
+        if self.fast is not None:
+            rgb = self.fast[v](colors)
+        else:
+            quats = self.quats + fit.d_quats
+            rgb = render(
+                self.means + fit.d_means,
+                quats,
+                self.log_scales + fit.d_log_scales,
+                self.logits,
+                colors,
+                self.cameras[v],
+                self.settings,
+            ).rgb
+        return rgb.permute(2, 0, 1)
+
+    def alpha(self, v: int, fit: FitState) -> torch.Tensor:  # -> [H, W]
+        """The view's coverage (1 - final transmittance), with the current geometry offsets."""
+        if self.fast is not None:
+            return self.fast[v].alpha
+        return render(
+            self.means + fit.d_means,
+            self.quats + fit.d_quats,
+            self.log_scales + fit.d_log_scales,
+            self.logits,
+            torch.zeros_like(self.means),
+            self.cameras[v],
+            self.settings,
+        ).alpha
+
+    def all(self, fit: FitState) -> list[torch.Tensor]:  # -> V x [3, H, W]
+        """Every view's current image, without gradients."""
+        with torch.no_grad():
+            return [self(v, fit).detach() for v in range(len(self))]
+
+
+def feature_extractor(weight: float, dino_path: str, say: Callable[[str], None]):
+    """The fit loss's feature term: DINO when local weights are given, else the weight-free patch features."""
+    if weight <= 0:
+        return None
+    if dino_path:
+        from .dino import DinoFeatures
+
+        say(f"feature loss: DINO from {dino_path}")
+        return DinoFeatures(dino_path)
+    say("feature loss: weight-free patch features (no DINO weights given)")
+    return losses.patch_feature_maps
+
+
+class MultiViewFit:
+    """Eq. 16 over all active views, one Adam step at a time (Eqs. 17-20 fuse the colour gradients)."""
+
+    def __init__(
+        self,
+        renderer: ViewRenderer,
+        fit: FitState,
+        optimizer: torch.optim.Optimizer,
+        bounds: GeometryBounds,  # in scene units
+        weights: losses.FitLossWeights,
+        features,  # images [B, 3, H, W] -> feature maps, or None
+        base_renders: Sequence[torch.Tensor],  # V x [3, H, W]: what the feature term compares with
+        project_gradients: bool,  # PCGrad over the views' colour gradients (False: their mean)
+        pcgrad_eps: float,
+    ):
+        self.renderer, self.fit, self.optimizer, self.bounds = renderer, fit, optimizer, bounds
+        self.weights, self.features = weights, features
+        self.project_gradients, self.pcgrad_eps = project_gradients, pcgrad_eps
+        with torch.no_grad():
+            self.base_features = [features(r[None]).detach() for r in base_renders] if features else None
+
+    def step(self, targets: Sequence[torch.Tensor], where: str) -> float:  # targets: V x [3, H, W]
+        """One step toward ``targets``; the mean fit loss over the views. ``where`` names the step in errors."""
+        fit, views = self.fit, len(self.renderer)
+        self.optimizer.zero_grad(set_to_none=True)
+        color_grads, geometry_grads, total = [], [[] for _ in fit.geometry()], 0.0
+        for v in range(views):
+            image = self.renderer(v, fit)
+            render_features = self.features(image[None]) if self.features else None
+            base_features = self.base_features[v] if self.features else None
+            loss = losses.fit_loss(image, targets[v], base_features, render_features, self.weights).total
+            grads = torch.autograd.grad(loss, fit.params(), allow_unused=True)
+            color_grads.append(grads[0] if grads[0] is not None else torch.zeros_like(fit.colors))
+            for slot, p, g in zip(geometry_grads, fit.geometry(), grads[1:]):
+                slot.append(g if g is not None else torch.zeros_like(p))
+            total += float(loss.detach())
+        if not math.isfinite(total):
+            raise NumericalError(f"the fit loss became non-finite at {where}, so the run stopped")
+        stacked = torch.stack(color_grads)
+        fuse = self.project_gradients and views > 1
+        fit.colors.grad = pcgrad.pcgrad_fuse(stacked, self.pcgrad_eps).gradient if fuse else stacked.mean(0)
+        for p, slot in zip(fit.geometry(), geometry_grads):
+            p.grad = torch.stack(slot).mean(0)  # geometry gradients are averaged over views
+        check_finite_gradients(fit.params())
+        self.optimizer.step()
+        with torch.no_grad():
+            fit.colors.clamp_(0.0, 1.0)
+            project_geometry_offsets_(fit.d_means, fit.d_log_scales, fit.d_quats, self.bounds)
+        return total / views
+
+
+def result_scene(scene: GaussianScene, fit: FitState, zero_sh_rest: bool) -> GaussianScene:
+    """The input scene with the fitted colours in the DC term (and offsets applied); never modifies ``scene``."""
+    seen = fit.seen.numpy()
+    colors = fit.colors.detach().numpy().astype(np.float64)
+    sh_dc = scene.sh_dc.copy()
+    sh_dc[seen] = ((colors - 0.5) / SH_C0).astype(np.float32)
+    out = replace(scene, sh_dc=sh_dc)
+    if scene.sh_rest is not None and zero_sh_rest:
+        out = replace(out, sh_rest=np.zeros_like(scene.sh_rest))
+    if fit.d_means is not None:
+        means, log_scales, quats = scene.means.copy(), scene.log_scales.copy(), scene.quats.copy()
+        means[seen] += fit.d_means.detach().numpy()
+        log_scales[seen] += fit.d_log_scales.detach().numpy()
+        quats[seen] += fit.d_quats.detach().numpy()
+        out = replace(out, means=means, log_scales=log_scales, quats=quats)
+    return out

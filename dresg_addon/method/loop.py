@@ -1,0 +1,426 @@
+"""DReSG end to end: Algorithm 1 of the paper as a short loop of named steps.
+
+:func:`stylize` is the library call (the CLI and the Blender operators are thin layers over it)::
+
+    run.select_views()                    # Sec. 4.3, Eqs. 13-15: active views by capped coverage
+    run.prepare()                         # seen Gaussians, base renders, content views, proposal states
+    for stage in run.remaining_stages():  # Sec. 4.2: N DDIM states in stages, gamma_n per stage
+        run.propose(stage)                # Sec. 4.1: attention-guided proposal per view
+        targets = run.residual_targets(stage)  # Eqs. 10-12: render-relative residual targets
+        run.fit(stage, targets)           # Eqs. 16-20: multi-view fitting, PCGrad-fused colour gradients
+        run.feed_back(stage)              # re-encode the fitted renders (Algorithm 1, last line)
+        if run.finish_stage(stage): break # log, checkpoint, live update; the early stop
+    run.post_stage()                      # covariance colour transfer, then fitting to it
+    return run.result()
+
+Progress, cancel, checkpoints and the log hang off the run (:mod:`.bookkeeping`) between the steps.
+Nothing here imports bpy.
+
+What a scene does not need is left out:
+- Gaussians that no active view sees are neither rasterized nor optimised during fitting (the log says
+  how many); their colours stay as they were.
+- With geometry offsets off (the default off the ``paper`` preset), fitting takes the colour-only fast
+  path: each view's image is a cached sparse matrix times the colours.
+- SH rest bands are never allocated for a scene without them; with them, the stylized colour goes to the
+  DC term and the rest is zeroed or kept (``StylizeConfig.sh_rest``).
+- diffusers is imported only for the ``sd15`` backend; with one active view there is no projection.
+- The stages stop early once the style distance stops improving (``StylizeConfig.early_stop``).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..scene.camera import Camera
+from ..scene.gaussians import GaussianScene
+from ..util.errors import CameraError, ConfigError, NumericalError
+from . import views as view_selection
+from .bookkeeping import Progress, RunHooks, RunRecord, StageUpdate, peak_rss_mb, run_id
+from .color_transfer import covariance_color_transform, coverage_weight
+from .config import StylizeConfig, check_run_settings
+from .fitting import FitState, MultiViewFit, ViewRenderer, feature_extractor, result_scene, seen_gaussians
+from .optim import make_fit_optimizer, scene_extent
+from .schedule import Stage, stage_gammas, stage_timesteps
+from .style_distance import sliced_wasserstein_patches
+from .targets import proposal_residual, residual_target
+from .views import ActiveViews, scaled_cameras
+
+__all__ = ["Progress", "StageUpdate", "StylizeResult", "stage_improvement", "stylize"]
+
+EARLY_STOP_WINDOW = 2  # stages over which the style distance must improve (one stage may pause, e.g. a coarse one)
+
+
+@dataclass
+class StylizeResult:
+    scene: GaussianScene
+    selection: ActiveViews
+    log: list[dict]
+    seconds: float
+
+
+def stylize(
+    scene: GaussianScene,
+    cameras: Sequence[Camera],
+    style_rgb: np.ndarray,  # [H, W, 3] float32 in [0, 1]
+    config: StylizeConfig | None = None,
+    *,
+    views: Sequence[int] | None = None,
+    content_images: dict[int, np.ndarray] | None = None,  # camera index -> photo [H, W, 3]
+    progress: Callable[[Progress], None] | None = None,
+    on_stage: Callable[[StageUpdate], None] | None = None,
+    cancel: threading.Event | None = None,
+    checkpoint_dir: str | os.PathLike | None = None,
+    log_path: str | os.PathLike | None = None,
+    save_views_dir: str | os.PathLike | None = None,
+    messages: Callable[[str], None] | None = None,
+) -> StylizeResult:
+    """Algorithm 1 of the paper, returning the stylized scene (the input is never modified).
+
+    ``views`` fixes the active cameras (indices into ``cameras``); otherwise they are chosen by coverage.
+    Deterministic for ``config.seed`` on the CPU.
+    """
+    hooks = RunHooks(progress, on_stage, cancel, messages)
+    record = RunRecord(checkpoint_dir, log_path, save_views_dir)
+    run = Stylization(scene, style_rgb, config or StylizeConfig(), hooks, record)
+    run.select_views(cameras, views)
+    run.prepare(content_images)
+    for stage in run.remaining_stages():
+        run.propose(stage)
+        targets = run.residual_targets(stage)
+        run.fit(stage, targets)
+        run.feed_back(stage)
+        if run.finish_stage(stage):
+            break
+    run.post_stage()
+    return run.result()
+
+
+def stage_improvement(distances: Sequence[float], window: int = EARLY_STOP_WINDOW) -> float | None:
+    """Relative drop of the style distance over the last ``window`` stages, (d[-1 - window] - d[-1]) / d[-1 - window].
+
+    ``distances[0]`` is the base renders'; None while fewer than ``window`` stages have run, or when the
+    earlier distance is 0 (nothing left to improve).
+    """
+    if len(distances) <= window or distances[-1 - window] <= 0:
+        return None
+    return (distances[-1 - window] - distances[-1]) / distances[-1 - window]
+
+
+def _proposal_backend(config: StylizeConfig):
+    """The configured proposal backend; the run's seed and content weight w_c go to every backend that has them."""
+    from .proposal import EnergyTerms, make_backend
+
+    if config.proposal == "synth":
+        weight = config.content_weight if config.use_content_query else 0.0
+        return make_backend("synth", seed=config.seed, content_weight=weight)
+    backend = make_backend("sd15", model_path=config.model_path)
+    backend.learning_rate = config.latent_lr
+    backend.terms = EnergyTerms(
+        config.content_weight, config.use_content_query, config.use_style_keys, config.use_style_values
+    )
+    return backend
+
+
+def _resize(image: torch.Tensor, height: int, width: int) -> torch.Tensor:  # [3, H, W]
+    if image.shape[-2:] == (height, width):
+        return image
+    return torch.nn.functional.interpolate(
+        image[None], size=(height, width), mode="bilinear", antialias=True, align_corners=False
+    )[0].clamp(0, 1)
+
+
+def _checked_style(style_rgb) -> np.ndarray:  # -> [H, W, 3] float32 in [0, 1]
+    style_rgb = np.asarray(style_rgb, dtype=np.float32)
+    if style_rgb.ndim != 3 or style_rgb.shape[2] != 3 or not np.isfinite(style_rgb).all():
+        raise ConfigError(f"style image must be a finite [H, W, 3] array, got shape {style_rgb.shape}")
+    return np.clip(style_rgb, 0.0, 1.0)  # HDR styles (EXR) would give targets outside displayable colours
+
+
+@dataclass
+class _StageWork:
+    """What one stage produced, for its log entry and its live update."""
+
+    started: float
+    energies: list[float] = field(default_factory=list)
+    proposal_seconds: float = 0.0
+    images: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    losses: list[float] = field(default_factory=list)
+    fitted_seconds: float = 0.0
+    distance: float = 0.0
+    stop_reason: str = ""
+
+
+class Stylization:
+    """One run of Algorithm 1: the state that flows from step to step, and one method per step."""
+
+    def __init__(self, scene: GaussianScene, style_rgb, config: StylizeConfig, hooks: RunHooks, record: RunRecord):
+        self.scene, self.config, self.hooks, self.record = scene, config, hooks, record
+        self.style_rgb = _checked_style(style_rgb)
+        check_run_settings(config)
+        self.size = (config.proposal_height, config.proposal_width)
+        torch.manual_seed(config.seed)
+        self.stages = stage_timesteps(config.stages, config.updates_per_stage, config.ddim_steps)
+        self.gammas = stage_gammas(config.schedule, self.stages)
+        hooks.plan(len(self.stages), config.post_steps > 0)
+
+    # --- Before the stages ---------------------------------------------------------------------------------
+
+    def select_views(self, cameras: Sequence[Camera], views: Sequence[int] | None) -> None:
+        """Sec. 4.3: the active views by capped coverage (Eqs. 13-15), or the given ones."""
+        self.hooks.report(0, 0, 1, "select", float("nan"), "selecting views by coverage")
+        if views is None:
+            self.selection = view_selection.select_active_views(self.scene, cameras, self.config)
+        else:
+            bad = [v for v in views if not 0 <= v < len(cameras)]
+            if bad or not views:
+                raise CameraError(f"active views {list(views)} do not index the {len(cameras)} cameras")
+            self.selection = ActiveViews(list(views), [], [], "given")
+        chosen = [cameras[v] for v in self.selection.indices]
+        self.cameras = scaled_cameras(chosen, self.config.render_scale)
+        self.names = [cameras[v].name or f"view_{v:03d}" for v in self.selection.indices]
+        self.hooks.say(f"active views: {len(self.cameras)} of {len(cameras)} ({self.selection.reason})")
+        self.hooks.check_cancel()
+
+    def prepare(self, content_images: dict[int, np.ndarray] | None) -> None:
+        """The seen Gaussians and their fit, base renders, content views and the proposal states."""
+        config, say = self.config, self.hooks.say
+        self.hooks.report(0, 0, 1, "setup", float("nan"), "preparing renders")
+        raster = config.raster_settings()
+        seen, fast = seen_gaussians(self.scene, self.cameras, raster, config.optimize_geometry)
+        left_out = len(self.scene) - seen.numel()
+        say(
+            f"optimising {seen.numel()} of {len(self.scene)} Gaussians ({left_out} unseen by the active views are left out)"
+        )
+        self.state = FitState.start(self.scene, seen, config.optimize_geometry)
+        self.renderer = ViewRenderer(self.scene, self.cameras, seen, raster, config.sh_rest == "keep", fast)
+        features = feature_extractor(config.lambda_feature, config.dino_path, say)
+        # Mean offsets are relative to the scene's extent (config docstring): lr and bound x extent.
+        seen_numpy = seen.numpy()
+        self.extent = config.scene_extent or scene_extent(
+            self.scene.means[seen_numpy], self.scene.log_scales[seen_numpy]
+        )
+        optimizer_settings = config.optimizer_settings(self.extent)
+        if config.optimize_geometry:
+            bounds = optimizer_settings.scene_bounds
+            say(
+                f"scene extent {self.extent:.6g}: mean offsets lr {optimizer_settings.mean_lr:.3g}, bound +-{bounds.means:.3g}"
+            )
+        state = self.state
+        geometry_params = [p for p in (state.d_log_scales, state.d_quats) if p is not None]
+        mean_params = [state.d_means] if state.d_means is not None else []
+        optimizer = make_fit_optimizer([state.colors], geometry_params, optimizer_settings, mean_params)
+        base_renders = [r.clone() for r in self.renderer.all(state)]
+        self.fitter = MultiViewFit(
+            self.renderer,
+            state,
+            optimizer,
+            optimizer_settings.scene_bounds,
+            config.loss_weights(),
+            features,
+            base_renders,
+            config.pcgrad,
+            config.pcgrad_eps,
+        )
+
+        # The proposal backend and its fixed references at the proposal resolution.
+        self.backend = _proposal_backend(config)
+        style = torch.from_numpy(self.style_rgb).permute(2, 0, 1).contiguous()
+        self.style = _resize(style, *self.size)
+        self.contents = []
+        for i, v in enumerate(self.selection.indices):
+            photo = None if content_images is None else content_images.get(v)
+            image = (
+                base_renders[i] if photo is None else torch.from_numpy(np.asarray(photo, np.float32)).permute(2, 0, 1)
+            )
+            self.contents.append(_resize(image, *self.size))
+        # Coverage (alpha) of each base render: the synth backend and the post stage change only what splats cover.
+        with torch.no_grad():
+            self.alphas = [self.renderer.alpha(v, state).detach() for v in range(len(self.cameras))]
+        self.coverages = [_resize(a[None].expand(3, -1, -1), *self.size)[0] for a in self.alphas]
+
+        # Resume from a checkpoint of the same run, else encode the base renders.
+        self.states = None
+        resumable = self.record.checkpoint is not None
+        key = run_id(config.to_dict(), self.scene, self.cameras, self.style, self.contents) if resumable else ""
+        saved = self.record.resume(key, say)
+        if saved is not None:
+            with torch.no_grad():
+                for p, value in zip(state.params(), saved["params"]):
+                    p.copy_(value)
+            optimizer.load_state_dict(saved["optimizer"])
+            self.states, self.hooks.first_stage = saved["states"], saved["stage"] + 1
+        if self.states is None:
+            self.states = [self.backend.encode(_resize(r, *self.size)) for r in base_renders]
+        # Style distances after each stage, the base renders' first (resumed runs take theirs from the log).
+        log = self.record.entries
+        self.distances = [entry["style_distance"] for entry in log if "style_distance" in entry]
+        if not self.distances or "base_style_distance" not in log[0]:
+            self.distances.insert(0, self.style_distance(self.renderer.all(state)))
+            say(f"style distance of the base renders: {self.distances[0]:.4f}")
+        else:
+            self.distances.insert(0, log[0]["base_style_distance"])
+
+    def remaining_stages(self) -> list[Stage]:
+        return self.stages[self.hooks.first_stage - 1 :]
+
+    # --- One stage ----------------------------------------------------------------------------------------
+
+    def propose(self, stage: Stage) -> None:
+        """Sec. 4.1: attention-guided proposals, one fresh-Adam step per timestep, per view."""
+        self.work = work = _StageWork(time.perf_counter())
+        self.backend.prepare_stage(self.states, self.style, self.contents, self.coverages)
+        for i in range(len(self.cameras)):
+            self.hooks.check_cancel()
+            last = work.energies[-1] if work.energies else float("nan")
+            self.hooks.report(stage.index, i, len(self.cameras), "proposal", last, f"proposal for {self.names[i]}")
+            self.states[i], energies = self.backend.propose(
+                self.states[i], stage.timesteps, self.style, self.contents[i], self.coverages[i]
+            )
+            work.energies.append(energies[-1])
+        work.proposal_seconds = time.perf_counter() - work.started
+
+    def residual_targets(self, stage: Stage) -> list[torch.Tensor]:
+        """Sec. 4.2, Eqs. 10-12: each view's render moved by gamma_n x the proposal's residual."""
+        targets, gamma = [], self.gammas[stage.index - 1]
+        space = "logit" if self.config.logit_space else "image"
+        for i, image in enumerate(self.renderer.all(self.state)):
+            decoded = self.backend.decode(self.states[i]).detach().float().cpu()
+            proposal = _resize(decoded, image.shape[1], image.shape[2])
+            residual = proposal_residual(proposal, image)
+            targets.append(residual_target(image, residual, gamma, space))
+            self.work.images[self.names[i]] = {
+                "render": image.permute(1, 2, 0).numpy(),
+                "proposal": proposal.permute(1, 2, 0).numpy(),
+                "target": targets[-1].permute(1, 2, 0).numpy(),
+                "residual": (0.5 + 0.5 * residual).clamp(0, 1).permute(1, 2, 0).numpy(),
+            }
+        return targets
+
+    def fit(self, stage: Stage, targets: list[torch.Tensor]) -> None:
+        """Sec. 4.3: multi-view fitting of the seen Gaussians to the targets (Eqs. 16-20)."""
+        n = stage.index
+        self.work.losses = self._fit_steps(targets, self.config.fit_steps, n, "fit", f"stage {n}, fit step")
+        self.work.fitted_seconds = time.perf_counter() - self.work.started
+
+    def feed_back(self, stage: Stage) -> None:
+        """Algorithm 1, last line: re-encode the fitted renders (unless the ablation keeps the first latents);
+        their style distance decides the early stop."""
+        renders = self.renderer.all(self.state)
+        self.work.distance = self.style_distance(renders)
+        self.distances.append(self.work.distance)
+        improvement = stage_improvement(self.distances)
+        early_stop = self.config.early_stop
+        if early_stop > 0 and stage.index < len(self.stages) and improvement is not None and improvement < early_stop:
+            self.work.stop_reason = (
+                f"over the last {EARLY_STOP_WINDOW} stages the style distance improved by {improvement:.1%} "
+                f"(< {early_stop:.1%}); the remaining stages are left out"
+            )
+        if self.config.feedback:
+            self.states = [self.backend.encode(_resize(r, *self.size)) for r in renders]
+
+    def finish_stage(self, stage: Stage) -> bool:
+        """The stage's log entry, checkpoint, saved images and live update; True when the stages stop early."""
+        n, work = stage.index, self.work
+        entry = {
+            "stage": n,
+            "t": stage.state,
+            "gamma": self.gammas[n - 1],
+            "energy": float(np.mean(work.energies)),
+            "fit_loss_first": work.losses[0] if work.losses else None,
+            "fit_loss_last": work.losses[-1] if work.losses else None,
+            "fit_losses": work.losses,
+            "stage_seconds": work.fitted_seconds,
+            "proposal_seconds": work.proposal_seconds,
+            "seconds": self.hooks.elapsed(),
+            "peak_rss_mb": peak_rss_mb(),
+            "views": len(self.cameras),
+            "gaussians_optimised": int(self.state.seen.numel()),
+            "scene_extent": self.extent,
+            "style_distance": work.distance,
+            "base_style_distance": self.distances[0],
+        }
+        if work.stop_reason:
+            entry["early_stop"] = True
+            self.hooks.say(f"stopping after stage {n} of {len(self.stages)}: {work.stop_reason}")
+        self.record.save_images(n, work.images)
+        self.record.append(entry)
+        self.record.save_checkpoint(n, self.state.params(), self.fitter.optimizer, self.states)
+        self.hooks.stage_done(lambda: self._stage_update(n, work.images))
+        return bool(work.stop_reason)
+
+    # --- After the stages ---------------------------------------------------------------------------------
+
+    def post_stage(self) -> None:
+        """Covariance colour transfer of the renders toward the style, then fitting to it."""
+        steps = self.config.post_steps
+        if steps <= 0:
+            return
+        self.hooks.check_cancel()
+        renders = self.renderer.all(self.state)
+        style = torch.from_numpy(self.style_rgb).permute(2, 0, 1).contiguous()
+        # Statistics over covered pixels only, and the background left as rendered: a black background
+        # in the statistics would wash the covered colours out, and recolouring it would light floaters.
+        transform = covariance_color_transform(torch.stack(renders), style, render_mask=torch.stack(self.alphas))
+        targets = [
+            r + coverage_weight(a)[None] * (transform.apply_to_images(r).clamp(0, 1) - r)
+            for r, a in zip(renders, self.alphas)
+        ]
+        started = time.perf_counter()
+        losses = self._fit_steps(targets, steps, len(self.stages) + 1, "post", "post stage step")
+        self.record.append(
+            {
+                "stage": "post",
+                "fit_loss_first": losses[0],
+                "fit_loss_last": losses[-1],
+                "fit_losses": losses,
+                "stage_seconds": time.perf_counter() - started,
+                "seconds": self.hooks.elapsed(),
+                "peak_rss_mb": peak_rss_mb(),
+            }
+        )
+        self.hooks.stage_done(lambda: self._stage_update(len(self.stages) + 1, {}))
+
+    def result(self) -> StylizeResult:
+        scene = result_scene(self.scene, self.state, self.config.sh_rest == "zero")
+        seconds = self.hooks.elapsed()
+        log = self.record.entries
+        last_loss = log[-1]["fit_loss_last"] if log else float("nan")
+        self.hooks.report(len(self.stages), 1, 1, "done", last_loss, f"done in {seconds:.1f} s")
+        return StylizeResult(scene, self.selection, log, seconds)
+
+    # --- Shared by the steps ------------------------------------------------------------------------------
+
+    def _fit_steps(self, targets, steps: int, stage: int, phase: str, where: str) -> list[float]:
+        losses = []
+        for step in range(steps):
+            self.hooks.check_cancel()
+            try:
+                losses.append(self.fitter.step(targets, f"{where} {step + 1}"))
+            except NumericalError as error:
+                raise NumericalError(f"{error}{self.record.kept_note()}") from None
+            self.hooks.report(stage, step + 1, steps, phase, losses[-1])
+        return losses
+
+    def style_distance(self, renders: list[torch.Tensor]) -> float:
+        """Style distance of the active views: 7x7 patch SW to the style at the proposal size, covered pixels."""
+        small = [_resize(r, *self.size) for r in renders]
+        return float(sliced_wasserstein_patches(small, self.style, masks=self.coverages, seed=self.config.seed).mean())
+
+    def _stage_update(self, stage: int, images) -> StageUpdate:
+        geometry = self.config.optimize_geometry
+        scene = result_scene(self.scene, self.state, self.config.sh_rest == "zero")
+        return StageUpdate(
+            stage,
+            scene.sh_dc,
+            scene.means if geometry else None,
+            scene.log_scales if geometry else None,
+            scene.quats if geometry else None,
+            images,
+        )

@@ -1,0 +1,634 @@
+"""The weight-free ``synth`` proposal backend: example-based synthesis that pastes the painting's strokes.
+
+Style transfer by texture synthesis (Elad and Milanfar, "Style Transfer via Texture Synthesis", IEEE
+TIP 2017), built on the EM texture optimisation of Kwatra et al. (SIGGRAPH 2005). One synthesis pass at
+a pyramid level and a patch size is:
+
+1. matching: each estimate patch on a grid (gap smaller than the patch, random grid offset per pass) to
+   its nearest style patch, L2 distance in a PCA subspace of the style's patches, searched exhaustively
+   by chunked matrix multiplies (:func:`nearest_patches`);
+2. robust aggregation: X~ = argmin_X sum_ij ||R_ij X - z_ij||^r by IRLS, weights ||R_ij X - z_ij||^(r-2)
+   (:func:`robust_aggregate`);
+3. content fusion: X = (X~ + W C') / (1 + W), C' the content colour-transferred to the style, W a
+   constant plus the content's edge strength, so edges and shapes stay where the scene has them
+   (:func:`fuse_content`, :func:`content_weight_map`);
+4. colour transfer of X to the style: covariance transfer, then histogram matching along the style's
+   colour principal axes (``color_transfer.match_color_histograms``).
+
+How the paper's quantities map onto it (Sec. 4.1, Algorithm 1 lines 3-5):
+
+- State z^{r,v}: the image itself at the proposal resolution; ``encode`` and ``decode`` are the identity
+  (clamped to [0, 1]). Each stage starts from that stage's render, which already carries the scene's
+  earlier stylization (feedback), so the synthesis refines what the scene has become.
+- One latent update at scheduler timestep k = one synthesis pass; S updates per stage = S passes.
+- The timestep sets the scale, as the U-Net's features are coarse at high noise and fine at low noise
+  (:func:`pass_scales`): a stage whose first timestep has noise fraction u = 1 - abar runs its passes
+  from the scale that u picks on the ladder of (level, patch size) pairs, coarse to fine (level 2 with
+  patches 33, 21, 13, 9, then level 1, then full resolution), down to full resolution and the smallest
+  patch, as a denoising run from that timestep would (SDEdit-like). Early stages re-synthesize strokes
+  and shapes from coarse levels; late ones only refine brush texture at full resolution. Images too
+  small for a level use the levels they have.
+- Noise: the first pass of a stage matches from the estimate plus Gaussian noise of standard deviation
+  ``noise x sqrt(1 - abar_k)`` (the forward process's noise level; Elad and Milanfar start from the
+  content plus noise of 50 grey levels), so early stages invent strokes in flat regions and late ones
+  do not.
+- Proposal-render residual: the proposal is render + ``proposal_step`` x (synthesis - render), with
+  ``proposal_step`` = 1 / max gamma_k = 0.5. A synthesis is not a small move away from the render, as
+  an attention-guided latent is, but a fresh image: amplified by gamma_k up to 2 (Eq. 12), its full
+  difference overshoots, and the targets of different views then disagree into speckle. With the step,
+  the target lies between the render and the synthesis, reaching it where gamma_k peaks.
+- E^attn: the reported energy is the synthesis energy, the mean over matched patches of
+  ||R_ij X - z_ij||^r per pixel value, before the pass's update.
+- w_c (content weight): the weight of the content fusion, W = w_c (edge_floor + edge_gain x edge), with
+  the edges taken at a coarse level (outlines and shading, not the photo's texture). The content view
+  I^{c,v} is the photo or the base render, as for every backend.
+- Colour across views: ``prepare_stage`` fits two colour maps on all active views at once
+  (``color_transfer.fit_color_map``: covariance transfer plus one histogram curve per style colour
+  axis), one for the stage's renders and one for the content views; each proposal starts from its
+  render recoloured by the first and fuses with its content recoloured by the second, so a surface gets
+  the same colours in every view. Only the colour correction after each pass is per view (it keeps the
+  palette on the painting's; leaving it out doubled the style distance on the bonsai).
+- gamma_k, the residual targets, the multi-view fitting with PCGrad and the feedback are the pipeline's,
+  unchanged.
+
+Alpha-aware: with a coverage map (the render's alpha), only covered pixels take part in colour statistics
+and matching (uncovered pixels are filled in smoothly from covered ones, and patches with no covered
+pixel are left out), and the proposal changes a pixel by ``color_transfer.coverage_weight`` of its alpha:
+the background, and faint floaters over it, stay as rendered. Deterministic for a seed: every random
+draw comes from a generator seeded by the seed, the timestep, the pass and a digest of the content.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass, fields, replace
+
+import torch
+import torch.nn.functional as F
+
+from ...util.errors import ConfigError, NumericalError
+from ..color_transfer import (
+    ColorMap,
+    covariance_color_transform,
+    coverage_weight,
+    fit_color_map,
+    match_color_histograms,
+)
+from ..schedule import alphas_cumprod
+from .base import ProposalBackend
+
+LIBRARY_CACHE_SIZE = 12
+LIBRARY_CHUNK_VALUES = 1 << 22  # patch values gathered at once while projecting a library (16 MB)
+COVERED = 0.5  # coverage above which a pixel counts in colour statistics and patch selection
+EDGE_SIGMA = 1.5  # blur of the content's gradient magnitude, in pixels of the working level
+IRLS_EPS = 1e-6  # keeps ||R X - z||^(r - 2) finite for a patch matched exactly
+
+
+@dataclass(frozen=True)
+class SynthSettings:
+    """Settings of the ``synth`` backend (Elad and Milanfar's values at ~400x400 where they give one)."""
+
+    seed: int = 0
+    max_levels: int = 3  # pyramid levels (factor 2); fewer when the image is small
+    coarsest_side: int = 64  # a level is used only while its shorter side is at least this many pixels
+    patch_sizes: tuple[int, ...] = (33, 21, 13, 9)  # large (shapes, strokes) to small (texture)
+    gap_ratio: float = 0.6  # grid gap / patch size (33:20, 21:13, 13:8, 9:5)
+    library_size: int = 24000  # style patches per (level, size), a horizontally flipped copy included
+    pca_dims: int = 32
+    pca_sample: int = 4096
+    robust_power: float = 0.8  # r of the IRLS aggregation
+    irls_iterations: int = 3
+    content_weight: float = 0.3  # w_c of the fusion W = w_c (edge_floor + edge_gain x edge), as the presets
+    edge_floor: float = 0.3
+    edge_gain: float = 3.0
+    edge_level: int = 2  # pyramid level whose edges set the content weight (outlines, not texture)
+    noise: float = 50.0 / 255.0  # matching noise of a stage's first pass, x sqrt(1 - abar_k)
+    histogram_matching: bool = True
+    proposal_step: float = 0.5  # proposal = render + proposal_step (synthesis - render): 1 / max gamma_k
+    search_chunk: int = 2048  # estimate patches per matrix multiply of the nearest-patch search
+
+    def check(self) -> None:
+        """Raise ConfigError for values that cannot work."""
+        if self.max_levels < 1 or self.coarsest_side < 1:
+            raise ConfigError("synth backend: max_levels and coarsest_side must be at least 1")
+        if not self.patch_sizes or min(self.patch_sizes) < 1:
+            raise ConfigError(f"synth backend: patch sizes must be at least 1, got {self.patch_sizes}")
+        if not 0.0 < self.gap_ratio <= 1.0:
+            raise ConfigError(f"synth backend: gap_ratio must be in (0, 1], got {self.gap_ratio}")
+        if self.library_size < 2:
+            raise ConfigError("synth backend: library_size must be at least 2 (a patch and its mirror image)")
+        if self.pca_dims < 1 or self.pca_sample < 1 or self.search_chunk < 1:
+            raise ConfigError("synth backend: pca_dims, pca_sample and search_chunk must be >= 1")
+        if not 0.0 < self.robust_power <= 2.0:
+            raise ConfigError(f"synth backend: robust_power must be in (0, 2], got {self.robust_power}")
+        if self.irls_iterations < 1:
+            raise ConfigError("synth backend: irls_iterations must be at least 1")
+        if self.edge_level < 0:
+            raise ConfigError(f"synth backend: edge_level must be >= 0, got {self.edge_level}")
+        for name in ("content_weight", "edge_floor", "edge_gain", "noise"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                raise ConfigError(f"synth backend: {name} must be finite and >= 0, got {getattr(self, name)}")
+        if not 0.0 < self.proposal_step <= 1.0:
+            raise ConfigError(f"synth backend: proposal_step must be in (0, 1], got {self.proposal_step}")
+
+
+# --- Patches on a grid ---------------------------------------------------------------------------------
+
+
+def patch_grid(height: int, width: int, size: int, gap: int, offset: tuple[int, int] = (0, 0)):
+    """Top-left corners (ys [a], xs [b]) of a patch grid that covers every pixel of an H x W image.
+
+    Corners step by ``gap`` from ``offset`` (taken modulo the gap), and the first and last possible
+    corners (0 and H - size) are always included, so the border is covered whatever the offset.
+    """
+    if size > min(height, width):
+        raise ValueError(f"patch size {size} is larger than the {width}x{height} image")
+
+    def axis(length: int, shift: int) -> torch.Tensor:
+        last = length - size
+        starts = torch.arange(min(shift % gap, last), last + 1, gap)
+        return torch.unique(torch.cat([torch.tensor([0, last]), starts]))
+
+    return axis(height, offset[0]), axis(width, offset[1])
+
+
+def patch_index(ys: torch.Tensor, xs: torch.Tensor, size: int, width: int) -> torch.Tensor:  # -> [P, size^2]
+    """Flat pixel indices of the patches with top-left corners on the grid ys x xs (row-major patches)."""
+    top = (ys[:, None] * width + xs[None, :]).reshape(-1)  # [P]
+    offsets = (torch.arange(size)[:, None] * width + torch.arange(size)[None, :]).reshape(-1)
+    return top[:, None] + offsets[None, :]
+
+
+def extract_patches(image: torch.Tensor, index: torch.Tensor) -> torch.Tensor:  # [C, H, W], [P, s^2] -> [P, C s^2]
+    """The patches of ``image`` at ``index`` as rows, channel-major (all of R, then G, then B)."""
+    channels = image.shape[0]
+    flat = image.reshape(channels, -1)
+    return flat[:, index].permute(1, 0, 2).reshape(index.shape[0], -1)
+
+
+def aggregate_patches(
+    patches: torch.Tensor,  # [P, C s^2]
+    index: torch.Tensor,  # [P, s^2]
+    weights: torch.Tensor,  # [P]
+    shape: tuple[int, int, int],  # (C, H, W)
+) -> tuple[torch.Tensor, torch.Tensor]:  # [C, H, W] weighted sum, [H, W] weight sum
+    """sum_ij w_ij R_ij^T z_ij and sum_ij w_ij R_ij^T 1: the two sides of the weighted patch average."""
+    channels, height, width = shape
+    count, pixels = index.shape
+    values = (patches.reshape(count, channels, pixels) * weights[:, None, None]).permute(1, 0, 2).reshape(channels, -1)
+    total = torch.zeros(channels, height * width, dtype=patches.dtype)
+    total.index_add_(1, index.reshape(-1), values)
+    weight = torch.zeros(height * width, dtype=patches.dtype)
+    weight.index_add_(0, index.reshape(-1), weights[:, None].expand(count, pixels).reshape(-1))
+    return total.reshape(shape), weight.reshape(height, width)
+
+
+def irls_weights(residual_norms: torch.Tensor, power: float) -> torch.Tensor:  # [P] -> [P]
+    """IRLS weights ||R_ij X - z_ij||^(r - 2) of min sum ||R_ij X - z_ij||^r, floored at IRLS_EPS inside."""
+    return (residual_norms.square() + IRLS_EPS).pow((power - 2.0) / 2.0)
+
+
+def robust_aggregate(
+    estimate: torch.Tensor,  # [C, H, W] the current X
+    matches: torch.Tensor,  # [P, C s^2] z_ij
+    index: torch.Tensor,  # [P, s^2]
+    power: float,
+    iterations: int,
+) -> torch.Tensor:  # [C, H, W]
+    """X~ = argmin_X sum_ij ||R_ij X - z_ij||^r by IRLS, started from the plain average (Elad and Milanfar).
+
+    Pixels that no patch covers keep the estimate's value. r = 2 is the plain average.
+    """
+    shape = tuple(estimate.shape)
+    weights = torch.ones(matches.shape[0], dtype=matches.dtype)
+    x = estimate
+    for iteration in range(iterations + 1):
+        total, weight = aggregate_patches(matches, index, weights, shape)
+        covered = weight > 0
+        x = torch.where(covered, total / weight.clamp_min(1e-30), estimate)
+        if iteration == iterations or power == 2.0:
+            break
+        norms = (extract_patches(x, index) - matches).norm(dim=1)
+        weights = irls_weights(norms, power)
+    return x
+
+
+# --- Nearest style patches in a PCA subspace -----------------------------------------------------------
+
+
+def pca_basis(samples: torch.Tensor, dims: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean [D] and orthonormal basis [D, d] of the top principal directions of ``samples`` [n, D].
+
+    Randomised range finder (Halko et al.) with two power iterations on the centred samples, then an
+    exact SVD in the small subspace; d = min(dims, n, D). Seeded through ``generator``.
+    """
+    mean = samples.mean(0)
+    centred = (samples - mean).double()
+    n, d_full = centred.shape
+    dims = max(1, min(dims, n, d_full))
+    sketch = min(d_full, dims + 8)
+    probe = torch.randn(d_full, sketch, generator=generator, dtype=torch.float64)
+    basis = torch.linalg.qr(centred @ probe).Q  # [n, sketch]
+    for _ in range(2):
+        basis = torch.linalg.qr(centred.T @ basis).Q
+        basis = torch.linalg.qr(centred @ basis).Q
+    _, _, vh = torch.linalg.svd(basis.T @ centred, full_matrices=False)
+    return mean, vh[:dims].T.to(samples.dtype).contiguous()
+
+
+def nearest_patches(queries: torch.Tensor, library: torch.Tensor, chunk: int = 2048) -> torch.Tensor:
+    """Index [P] of the nearest library row (L2) for each query row: queries [P, d], library [L, d].
+
+    Exhaustive: ||q - l||^2 = ||l||^2 - 2 q.l + const per query, one matrix multiply per chunk of queries.
+    Ties go to the lowest index.
+    """
+    norms = library.square().sum(1)  # [L]
+    out = torch.empty(queries.shape[0], dtype=torch.long)
+    for start in range(0, queries.shape[0], chunk):
+        block = queries[start : start + chunk]
+        out[start : start + chunk] = torch.addmm(norms[None, :], block, library.T, alpha=-2.0).argmin(1)
+    return out
+
+
+@dataclass
+class StyleLibrary:
+    """Style patches of one size at one pyramid level, kept as positions (not pixels) with their PCA projection.
+
+    A row is a patch of the style or of its mirror image, found by its top-left pixel in ``source`` (the
+    two images side by side in memory); the pixels of a row are gathered only when it is matched, so a
+    library of 24k 33x33 patches costs 3 MB of projections instead of 300 MB of pixels.
+    """
+
+    size: int
+    width: int  # of the style image at this level
+    source: torch.Tensor  # [3, 2 H W]: the style, then its mirror image, flattened
+    corners: torch.Tensor  # [L] flat index of each patch's top-left pixel in source
+    mean: torch.Tensor  # [3 s^2]
+    basis: torch.Tensor  # [3 s^2, d]
+    projected: torch.Tensor  # [L, d]
+
+    def __len__(self) -> int:
+        return self.corners.numel()
+
+    def patches(self, rows: torch.Tensor | None = None) -> torch.Tensor:  # [R] -> [R, 3 s^2] (all rows: None)
+        corners = self.corners if rows is None else self.corners[rows]
+        offsets = (torch.arange(self.size)[:, None] * self.width + torch.arange(self.size)[None, :]).reshape(-1)
+        index = corners[:, None] + offsets[None, :]
+        return self.source[:, index].permute(1, 0, 2).reshape(index.shape[0], -1)
+
+    def project(self, patches: torch.Tensor) -> torch.Tensor:  # [P, 3 s^2] -> [P, d]
+        return (patches - self.mean) @ self.basis
+
+
+def build_library(style: torch.Tensor, size: int, settings: SynthSettings, generator: torch.Generator) -> StyleLibrary:
+    """All ``size`` patches of ``style`` [3, H, W] and of its mirror image, a seeded subset above the cap."""
+    _, height, width = style.shape
+    columns = width - size + 1
+    positions = (height - size + 1) * columns
+    half = settings.library_size // 2
+    chosen = torch.arange(positions)
+    if positions > half:
+        chosen = torch.randperm(positions, generator=generator)[:half].sort().values
+    top_left = (chosen // columns) * width + chosen % columns
+    corners = torch.cat([top_left, top_left + height * width])  # the second half lies in the mirror image
+    source = torch.cat([style.reshape(3, -1), style.flip(-1).reshape(3, -1)], 1).contiguous()
+    library = StyleLibrary(size, width, source, corners, torch.zeros(0), torch.zeros(0), torch.zeros(0))
+    rows = torch.arange(len(library))
+    if len(library) > settings.pca_sample:
+        rows = torch.randperm(len(library), generator=generator)[: settings.pca_sample]
+    library.mean, library.basis = pca_basis(library.patches(rows), settings.pca_dims, generator)
+    chunk = max(1, LIBRARY_CHUNK_VALUES // library.mean.numel())
+    library.projected = torch.cat(
+        [
+            library.project(library.patches(torch.arange(i, min(i + chunk, len(library)))))
+            for i in range(0, len(library), chunk)
+        ]
+    ).contiguous()
+    return library
+
+
+# --- Scale, content and colour ---------------------------------------------------------------------------
+
+
+def pyramid_levels(height: int, width: int, settings: SynthSettings) -> int:
+    """How many levels (factor 2) the image has whose shorter side is at least ``coarsest_side``."""
+    side = min(height, width)
+    levels = 1
+    while levels < settings.max_levels and side // 2**levels >= settings.coarsest_side:
+        levels += 1
+    return levels
+
+
+def scale_ladder(levels: int, settings: SynthSettings) -> list[tuple[int, int]]:
+    """(level, patch size) from coarsest to finest: every patch size at every level, as Elad and Milanfar run."""
+    return [(level, size) for level in range(levels - 1, -1, -1) for size in settings.patch_sizes]
+
+
+def pass_scales(noise_fraction: float, passes: int, levels: int, settings: SynthSettings) -> list[tuple[int, int]]:
+    """(level, patch size) of each pass of a stage that starts at noise fraction u = 1 - abar_k.
+
+    Pass j stands at u_j = u (P - 1 - j) / (P - 1), from the stage's own noise down to none, as a
+    denoising run from timestep k would; u_j picks the rung floor((1 - u_j) x len(ladder)) of
+    :func:`scale_ladder`: coarse levels and large patches at high noise, full resolution and small
+    patches at none. A stage of one pass stays at its own scale.
+    """
+    ladder = scale_ladder(levels, settings)
+    u = min(max(float(noise_fraction), 0.0), 1.0)
+    out = []
+    for j in range(passes):
+        u_j = u * (passes - 1 - j) / (passes - 1) if passes > 1 else u
+        out.append(ladder[min(len(ladder) - 1, int((1.0 - u_j) * len(ladder)))])
+    return out
+
+
+def downsample(image: torch.Tensor, level: int) -> torch.Tensor:  # [C, H, W] -> [C, H / 2^level, W / 2^level]
+    if level == 0:
+        return image
+    height, width = image.shape[-2:]
+    size = (max(1, height // 2**level), max(1, width // 2**level))
+    return F.interpolate(image[None], size=size, mode="bilinear", antialias=True, align_corners=False)[0]
+
+
+def upsample(image: torch.Tensor, height: int, width: int) -> torch.Tensor:  # [C, h, w] -> [C, H, W]
+    if image.shape[-2:] == (height, width):
+        return image
+    return F.interpolate(image[None], size=(height, width), mode="bilinear", align_corners=False)[0]
+
+
+def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:  # [C, H, W], separable, replicated border
+    radius = max(1, int(math.ceil(3.0 * sigma)))
+    x = torch.arange(-radius, radius + 1, dtype=image.dtype)
+    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+    channels = image.shape[0]
+    rows = F.pad(image[None], (0, 0, radius, radius), mode="replicate")
+    out = F.conv2d(rows, kernel.reshape(1, 1, -1, 1).expand(channels, 1, -1, 1), groups=channels)
+    cols = F.pad(out, (radius, radius, 0, 0), mode="replicate")
+    return F.conv2d(cols, kernel.reshape(1, 1, 1, -1).expand(channels, 1, 1, -1), groups=channels)[0]
+
+
+def fill_uncovered(image: torch.Tensor, coverage: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``image`` [C, H, W] with pixels of coverage [H, W] below COVERED replaced by a normalised blur of
+    the covered ones (so patches on the silhouette match by what is inside it)."""
+    mask = (coverage > COVERED).to(image.dtype)
+    if bool(mask.all()):
+        return image
+    if not bool(mask.any()):
+        return image
+    num = _gaussian_blur(image * mask, sigma)
+    den = _gaussian_blur(mask[None], sigma)[0]
+    mean = (image * mask).sum((1, 2)) / mask.sum()
+    smooth = torch.where(den > 1e-3, num / den.clamp_min(1e-3), mean[:, None, None])
+    return torch.where(mask > 0, image, smooth)
+
+
+def content_weight_map(content: torch.Tensor, settings: SynthSettings) -> torch.Tensor:  # [3, H, W] -> [H, W]
+    """W = w_c (edge_floor + edge_gain x edge), edge the blurred gradient magnitude of the content's
+    luminance, divided by its 99th percentile and clipped to [0, 1] (1 on strong edges)."""
+    luma = content.mean(0)
+    gy = torch.zeros_like(luma)
+    gx = torch.zeros_like(luma)
+    gy[1:-1] = (luma[2:] - luma[:-2]) / 2.0
+    gx[:, 1:-1] = (luma[:, 2:] - luma[:, :-2]) / 2.0
+    magnitude = _gaussian_blur(torch.sqrt(gx.square() + gy.square())[None], EDGE_SIGMA)[0]
+    scale = torch.quantile(magnitude.reshape(-1)[:: max(1, magnitude.numel() // 65536)], 0.99)
+    edge = (magnitude / scale.clamp_min(1e-6)).clamp(0.0, 1.0)
+    return settings.content_weight * (settings.edge_floor + settings.edge_gain * edge)
+
+
+def fuse_content(synthesis: torch.Tensor, content: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """X = (X~ + W C') / (1 + W) per pixel: synthesis [C, H, W], content [C, H, W], weight [H, W]."""
+    return (synthesis + weight * content) / (1.0 + weight)
+
+
+def to_style_colors(
+    image: torch.Tensor,  # [3, H, W]
+    style: torch.Tensor,  # [3, Hs, Ws]
+    coverage: torch.Tensor | None,  # [H, W] or None
+    histogram: bool,
+) -> torch.Tensor:
+    """Covariance colour transfer of the covered pixels to the style, then (optionally) histogram matching
+    along the style's colour principal axes; uncovered pixels are returned unchanged. Clamped to [0, 1]."""
+    mask = None if coverage is None else coverage > COVERED
+    if mask is not None and not bool(mask.any()):
+        return image
+    transform = covariance_color_transform(image, style, None if mask is None else mask)
+    out = transform.apply_to_images(image)
+    if histogram:
+        pixels = out.permute(1, 2, 0).reshape(-1, 3)
+        keep = slice(None) if mask is None else mask.reshape(-1)
+        matched = pixels.clone()
+        matched[keep] = match_color_histograms(pixels[keep], style.permute(1, 2, 0).reshape(-1, 3)).to(pixels.dtype)
+        out = matched.reshape(image.shape[1], image.shape[2], 3).permute(2, 0, 1)
+    out = out.clamp(0.0, 1.0)
+    return out if mask is None else torch.where(mask, out, image)
+
+
+def recolor(image: torch.Tensor, color_map: ColorMap, coverage: torch.Tensor | None) -> torch.Tensor:
+    """``color_map`` applied to the covered pixels of ``image`` [3, H, W] (coverage > COVERED), clamped to [0, 1]."""
+    out = color_map.apply_to_images(image).clamp(0.0, 1.0)
+    return out if coverage is None else torch.where(coverage > COVERED, out, image)
+
+
+@dataclass
+class _StageColors:
+    """The colour maps that one stage's proposals share (``SynthBackend.prepare_stage``)."""
+
+    style_key: bytes
+    states: ColorMap  # the renders of every active view to the style
+    contents: ColorMap  # the content views to the style
+    content_key: bytes
+
+
+# --- The backend -----------------------------------------------------------------------------------------
+
+
+def _digest(*tensors: torch.Tensor) -> bytes:
+    h = hashlib.sha256()
+    for tensor in tensors:
+        h.update(repr(tuple(tensor.shape)).encode())
+        h.update(tensor.detach().float().contiguous().numpy().tobytes())
+    return h.digest()
+
+
+def _generator(*parts) -> torch.Generator:
+    seed = int.from_bytes(hashlib.sha256(repr(parts).encode()).digest()[:8], "little") & (2**63 - 1)
+    return torch.Generator().manual_seed(seed)
+
+
+class SynthBackend(ProposalBackend):
+    """Example-based synthesis proposals (module docstring); no weights, runs on a CPU.
+
+    ``SynthBackend(seed=1, noise=0.1)`` overrides fields of ``SynthSettings``; unknown names raise.
+    """
+
+    name = "synth"
+
+    def __init__(self, settings: SynthSettings | None = None, **overrides):
+        known = {f.name for f in fields(SynthSettings)}
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise ConfigError(f"unknown synth backend settings: {', '.join(unknown)}")
+        self.settings = replace(settings or SynthSettings(), **overrides)
+        self.settings.check()
+        self._alpha_bar = torch.from_numpy(alphas_cumprod()).float()
+        self._libraries: OrderedDict = OrderedDict()
+        self._contents: OrderedDict = OrderedDict()
+        self._stage: _StageColors | None = None
+
+    @staticmethod
+    def _check_image(image: torch.Tensor, what: str) -> torch.Tensor:
+        if image.dim() != 3 or image.shape[0] != 3:
+            raise ValueError(f"the synth backend expects a [3, H, W] {what}, got {list(image.shape)}")
+        image = image.detach().float()
+        if not torch.isfinite(image).all():
+            raise NumericalError(f"the synth backend got a {what} with non-finite values")
+        return image.clamp(0.0, 1.0)
+
+    def encode(self, image: torch.Tensor) -> torch.Tensor:  # [3, H, W] -> [3, H, W]
+        """The state is the image itself (clamped to [0, 1])."""
+        return self._check_image(image, "image").clone()
+
+    def decode(self, state: torch.Tensor) -> torch.Tensor:  # [3, H, W] -> [3, H, W]
+        return self._check_image(state, "state")
+
+    def alpha_bar(self, timestep: int) -> float:
+        if not 0 <= int(timestep) < self._alpha_bar.numel():
+            raise ValueError(f"timestep must be in [0, {self._alpha_bar.numel()}), got {timestep}")
+        return float(self._alpha_bar[int(timestep)])
+
+    def _library(self, style: torch.Tensor, style_key: bytes, level: int, size: int) -> StyleLibrary:
+        key = (style_key, level, size)
+        library = self._libraries.get(key)
+        if library is None:
+            generator = _generator(self.settings.seed, "library", style_key, level, size)
+            library = build_library(downsample(style, level), size, self.settings, generator)
+            self._libraries[key] = library
+            while len(self._libraries) > LIBRARY_CACHE_SIZE:
+                self._libraries.popitem(last=False)
+        else:
+            self._libraries.move_to_end(key)
+        return library
+
+    def prepare_stage(self, states, style_image, contents, coverages) -> None:
+        """Fit the colour maps this stage's proposals share: the renders of all views pooled to the style, and
+        the content views pooled (cached), so every view recolours a surface the same way."""
+        s = self.settings
+        style = self._check_image(style_image, "style image")
+        renders = [self._check_image(x, "state") for x in states]
+        covers = [
+            None if c is None else c.detach().float().reshape(r.shape[1:]).clamp(0.0, 1.0)
+            for r, c in zip(renders, coverages)
+        ]
+        content_images = [r if c is None else self._check_image(c, "content image") for r, c in zip(renders, contents)]
+        style_key = _digest(style)
+        content_key = _digest(*content_images, *[c for c in covers if c is not None])
+        if self._stage is not None and (self._stage.style_key, self._stage.content_key) == (style_key, content_key):
+            content_map = self._stage.contents
+        else:
+            content_map = fit_color_map(content_images, style, covers, s.histogram_matching)
+        self._stage = _StageColors(
+            style_key, fit_color_map(renders, style, covers, s.histogram_matching), content_map, content_key
+        )
+
+    def _content(self, content: torch.Tensor, style: torch.Tensor, coverage, keys: tuple[bytes, bytes], level: int):
+        """(C', W) at ``level``: the content colour-transferred to the style, and the fusion weight map."""
+        stage = self._stage if self._stage is not None and self._stage.style_key == keys[0] else None
+        cached = self._contents.get((*keys, level, stage is not None))
+        if cached is None:
+            if stage is not None:
+                transferred = downsample(recolor(content, stage.contents, coverage), level)
+            else:
+                transferred = downsample(
+                    to_style_colors(content, style, coverage, self.settings.histogram_matching), level
+                )
+            # Edges at a structural scale (object outlines and shading, not the photo's texture).
+            structure = downsample(content, max(level, min(self.settings.edge_level, self.settings.max_levels - 1)))
+            weight = upsample(content_weight_map(structure, self.settings)[None], *transferred.shape[1:])[0]
+            cached = (transferred, weight)
+            self._contents[(*keys, level, stage is not None)] = cached
+            while len(self._contents) > 2 * LIBRARY_CACHE_SIZE:
+                self._contents.popitem(last=False)
+        return cached
+
+    def propose(
+        self,
+        state: torch.Tensor,  # [3, H, W]
+        timesteps: Sequence[int],
+        style_image: torch.Tensor,  # [3, Hs, Ws]
+        content_image: torch.Tensor | None,  # [3, H, W]
+        coverage: torch.Tensor | None = None,  # [H, W] render alpha
+    ) -> tuple[torch.Tensor, list[float]]:
+        """One synthesis pass per timestep (Algorithm 1, lines 3-5); returns the proposal and the pass energies."""
+        s = self.settings
+        render = self._check_image(state, "state")
+        style = self._check_image(style_image, "style image")
+        height, width = render.shape[1:]
+        content = render if content_image is None else self._check_image(content_image, "content image")
+        if content.shape != render.shape:
+            raise ValueError(f"content image {list(content.shape)} and state {list(render.shape)} differ in size")
+        if coverage is not None:
+            coverage = coverage.detach().float().reshape(height, width)
+            if not torch.isfinite(coverage).all():
+                raise NumericalError("the synth backend got a coverage map with non-finite values")
+            coverage = coverage.clamp(0.0, 1.0)
+        if not timesteps:
+            return render.clone(), []
+        levels = min(pyramid_levels(height, width, s), pyramid_levels(*style.shape[1:], s))
+        noise_fraction = 1.0 - self.alpha_bar(timesteps[0])
+        plan = pass_scales(noise_fraction, len(timesteps), levels, s)
+        keys = (_digest(style), _digest(content, coverage if coverage is not None else torch.zeros(0)))
+        # Colours first (Elad and Milanfar: colour transfer before synthesis), then the passes, coarse to fine;
+        # going to a finer level upsamples the estimate, whose detail the finer patches then synthesize.
+        level = plan[0][0]
+        stage = self._stage if self._stage is not None and self._stage.style_key == keys[0] else None
+        if stage is not None:
+            x = downsample(recolor(render, stage.states, coverage), level)
+        else:
+            x = downsample(to_style_colors(render, style, coverage, s.histogram_matching), level)
+        energies = []
+        for j, ((pass_level, size), timestep) in enumerate(zip(plan, timesteps)):
+            if pass_level != level:
+                level = pass_level
+                x = upsample(x, height // 2**level, width // 2**level)
+            generator = _generator(s.seed, "pass", int(timestep), j, keys[1])
+            noise = s.noise * math.sqrt(noise_fraction) if j == 0 else 0.0
+            x, energy = self._pass(x, style, content, coverage, keys, level, size, noise, generator)
+            energies.append(energy)
+        x = upsample(x, height, width)
+        step = s.proposal_step if coverage is None else s.proposal_step * coverage_weight(coverage)[None]
+        return (render + step * (x - render)).clamp(0.0, 1.0), energies
+
+    def _pass(self, estimate, style, content, coverage, keys, level, size, noise, generator):
+        """One EM pass on ``estimate`` (at ``level``) with ``size`` patches: (new estimate, energy before it)."""
+        s = self.settings
+        h, w = estimate.shape[1:]
+        size = min(size, h, w, *downsample(style, level).shape[1:])
+        gap = max(1, round(s.gap_ratio * size))
+        cover = None if coverage is None else downsample(coverage[None], level)[0]
+        library = self._library(style, keys[0], level, size)
+        filled = estimate if cover is None else fill_uncovered(estimate, cover, sigma=max(1.0, size / 2))
+        probe = filled + noise * torch.randn(filled.shape, generator=generator) if noise > 0 else filled
+        offset = tuple(int(v) for v in torch.randint(0, gap, (2,), generator=generator))
+        index = patch_index(*patch_grid(h, w, size, gap, offset), size, w)
+        if cover is not None:  # patches with nothing covered take no part
+            index = index[cover.reshape(-1)[index].amax(1) > COVERED]
+        if index.shape[0] == 0:
+            return estimate, 0.0
+        # E-step: nearest style patches; M-step: robust aggregation, content fusion, colour transfer.
+        queries = library.project(extract_patches(probe, index))
+        matches = library.patches(nearest_patches(queries, library.projected, s.search_chunk))
+        energy = (extract_patches(filled, index) - matches).norm(dim=1).pow(s.robust_power).mean() / matches.shape[1]
+        synthesis = robust_aggregate(estimate, matches, index, s.robust_power, s.irls_iterations)
+        transferred, weight = self._content(content, style, coverage, keys, level)
+        fused = fuse_content(synthesis, transferred, weight)
+        return to_style_colors(fused, style, cover, s.histogram_matching), float(energy)
+
+    def clear_cache(self) -> None:
+        """Forget cached style libraries and content maps (frees memory; results do not depend on it)."""
+        self._libraries.clear()
+        self._contents.clear()
+        self._stage = None
