@@ -1,18 +1,7 @@
 """DReSG end to end: Algorithm 1 of the paper as a short loop of named steps.
 
-:func:`stylize` is the library call (the CLI and the Blender operators are thin layers over it)::
-
-    run.select_views()                    # Sec. 4.3, Eqs. 13-15: active views by capped coverage
-    run.prepare()                         # seen Gaussians, base renders, content views, proposal states
-    for stage in run.remaining_stages():  # Sec. 4.2: N DDIM states in stages, gamma_n per stage
-        run.propose(stage)                # Sec. 4.1: attention-guided proposal per view
-        targets = run.residual_targets(stage)  # Eqs. 10-12: render-relative residual targets
-        run.fit(stage, targets)           # Eqs. 16-20: multi-view fitting, PCGrad-fused colour gradients
-        run.feed_back(stage)              # re-encode the fitted renders (Algorithm 1, last line)
-        if run.finish_stage(stage): break # log, checkpoint, live update; the early stop
-    run.post_stage()                      # covariance colour transfer, then fitting to it
-    return run.result()
-
+:func:`stylize` is the library call (the CLI and the Blender operators are thin layers over it); its
+body is the algorithm, one line per step, each a method of :class:`Stylization` that cites its section.
 Progress, cancel, checkpoints and the log hang off the run (:mod:`.bookkeeping`) between the steps.
 Nothing here imports bpy.
 
@@ -52,8 +41,6 @@ from .style_distance import sliced_wasserstein_patches
 from .targets import proposal_residual, residual_target
 from .views import ActiveViews, scaled_cameras
 
-__all__ = ["Progress", "StageUpdate", "StylizeResult", "stage_improvement", "stylize"]
-
 EARLY_STOP_WINDOW = 2  # stages over which the style distance must improve (one stage may pause, e.g. a coarse one)
 
 
@@ -89,16 +76,16 @@ def stylize(
     hooks = RunHooks(progress, on_stage, cancel, messages)
     record = RunRecord(checkpoint_dir, log_path, save_views_dir)
     run = Stylization(scene, style_rgb, config or StylizeConfig(), hooks, record)
-    run.select_views(cameras, views)
-    run.prepare(content_images)
-    for stage in run.remaining_stages():
-        run.propose(stage)
-        targets = run.residual_targets(stage)
-        run.fit(stage, targets)
-        run.feed_back(stage)
-        if run.finish_stage(stage):
+    run.select_views(cameras, views)  # Sec. 4.3, Eqs. 13-15: active views by capped coverage
+    run.prepare(content_images)  # seen Gaussians, base renders, content views, proposal states
+    for stage in run.remaining_stages():  # Sec. 4.2: the DDIM states in stages, gamma_n per stage
+        run.propose(stage)  # Sec. 4.1: an attention-guided proposal per view
+        targets = run.residual_targets(stage)  # Eqs. 10-12: render-relative residual targets
+        run.fit(stage, targets)  # Eqs. 16-20: multi-view fitting, PCGrad-fused colour gradients
+        run.feed_back(stage)  # Algorithm 1, last line: re-encode the fitted renders
+        if run.finish_stage(stage):  # log, checkpoint, live update; True: the early stop
             break
-    run.post_stage()
+    run.post_stage()  # covariance colour transfer toward the style, then fitting to it
     return run.result()
 
 
@@ -189,16 +176,22 @@ class Stylization:
         self.hooks.check_cancel()
 
     def prepare(self, content_images: dict[int, np.ndarray] | None) -> None:
-        """The seen Gaussians and their fit, base renders, content views and the proposal states."""
-        config, say = self.config, self.hooks.say
+        """The seen Gaussians and their fit, the proposal references, and the proposal states (resumed or new)."""
         self.hooks.report(0, 0, 1, "setup", float("nan"), "preparing renders")
+        base_renders = self._set_up_fit()
+        self._set_up_proposals(base_renders, content_images)
+        self._resume_or_encode(base_renders)
+
+    def _set_up_fit(self) -> list[torch.Tensor]:
+        """The Gaussians the active views see, their fit state, renderer and optimiser; the base renders."""
+        config, say = self.config, self.hooks.say
         raster = config.raster_settings()
         seen, fast = seen_gaussians(self.scene, self.cameras, raster, config.optimize_geometry)
         left_out = len(self.scene) - seen.numel()
         say(
             f"optimising {seen.numel()} of {len(self.scene)} Gaussians ({left_out} unseen by the active views are left out)"
         )
-        self.state = FitState.start(self.scene, seen, config.optimize_geometry)
+        self.state = state = FitState.start(self.scene, seen, config.optimize_geometry)
         self.renderer = ViewRenderer(self.scene, self.cameras, seen, raster, config.sh_rest == "keep", fast)
         features = feature_extractor(config.lambda_feature, config.dino_path, say)
         # Mean offsets are relative to the scene's extent (config docstring): lr and bound x extent.
@@ -206,31 +199,32 @@ class Stylization:
         self.extent = config.scene_extent or scene_extent(
             self.scene.means[seen_numpy], self.scene.log_scales[seen_numpy]
         )
-        optimizer_settings = config.optimizer_settings(self.extent)
+        settings = config.optimizer_settings(self.extent)
         if config.optimize_geometry:
-            bounds = optimizer_settings.scene_bounds
             say(
-                f"scene extent {self.extent:.6g}: mean offsets lr {optimizer_settings.mean_lr:.3g}, bound +-{bounds.means:.3g}"
+                f"scene extent {self.extent:.6g}: mean offsets lr {settings.mean_lr:.3g}, "
+                f"bound +-{settings.scene_bounds.means:.3g}"
             )
-        state = self.state
         geometry_params = [p for p in (state.d_log_scales, state.d_quats) if p is not None]
         mean_params = [state.d_means] if state.d_means is not None else []
-        optimizer = make_fit_optimizer([state.colors], geometry_params, optimizer_settings, mean_params)
+        optimizer = make_fit_optimizer([state.colors], geometry_params, settings, mean_params)
         base_renders = [r.clone() for r in self.renderer.all(state)]
         self.fitter = MultiViewFit(
             self.renderer,
             state,
             optimizer,
-            optimizer_settings.scene_bounds,
+            settings.scene_bounds,
             config.loss_weights(),
             features,
             base_renders,
             config.pcgrad,
             config.pcgrad_eps,
         )
+        return base_renders
 
-        # The proposal backend and its fixed references at the proposal resolution.
-        self.backend = _proposal_backend(config)
+    def _set_up_proposals(self, base_renders: list[torch.Tensor], content_images) -> None:
+        """The proposal backend and its fixed references at the proposal size: style, contents, coverage."""
+        self.backend = _proposal_backend(self.config)
         style = torch.from_numpy(self.style_rgb).permute(2, 0, 1).contiguous()
         self.style = _resize(style, *self.size)
         self.contents = []
@@ -242,28 +236,28 @@ class Stylization:
             self.contents.append(_resize(image, *self.size))
         # Coverage (alpha) of each base render: the synth backend and the post stage change only what splats cover.
         with torch.no_grad():
-            self.alphas = [self.renderer.alpha(v, state).detach() for v in range(len(self.cameras))]
+            self.alphas = [self.renderer.alpha(v, self.state).detach() for v in range(len(self.cameras))]
         self.coverages = [_resize(a[None].expand(3, -1, -1), *self.size)[0] for a in self.alphas]
 
-        # Resume from a checkpoint of the same run, else encode the base renders.
-        self.states = None
+    def _resume_or_encode(self, base_renders: list[torch.Tensor]) -> None:
+        """Resume from a checkpoint of the same run, else encode the base renders; the style distances so far."""
         resumable = self.record.checkpoint is not None
-        key = run_id(config.to_dict(), self.scene, self.cameras, self.style, self.contents) if resumable else ""
-        saved = self.record.resume(key, say)
+        key = run_id(self.config.to_dict(), self.scene, self.cameras, self.style, self.contents) if resumable else ""
+        saved = self.record.resume(key, self.hooks.say)
         if saved is not None:
             with torch.no_grad():
-                for p, value in zip(state.params(), saved["params"]):
+                for p, value in zip(self.state.params(), saved["params"]):
                     p.copy_(value)
-            optimizer.load_state_dict(saved["optimizer"])
+            self.fitter.optimizer.load_state_dict(saved["optimizer"])
             self.states, self.hooks.first_stage = saved["states"], saved["stage"] + 1
-        if self.states is None:
+        else:
             self.states = [self.backend.encode(_resize(r, *self.size)) for r in base_renders]
         # Style distances after each stage, the base renders' first (resumed runs take theirs from the log).
         log = self.record.entries
         self.distances = [entry["style_distance"] for entry in log if "style_distance" in entry]
         if not self.distances or "base_style_distance" not in log[0]:
-            self.distances.insert(0, self.style_distance(self.renderer.all(state)))
-            say(f"style distance of the base renders: {self.distances[0]:.4f}")
+            self.distances.insert(0, self.style_distance(self.renderer.all(self.state)))
+            self.hooks.say(f"style distance of the base renders: {self.distances[0]:.4f}")
         else:
             self.distances.insert(0, log[0]["base_style_distance"])
 
