@@ -1,5 +1,8 @@
 """Active-view selection by capped Gaussian coverage (Sec. 4.3).
 
+On a scene, :func:`select_active_views` renders each camera once for :func:`visibility_matrix` and runs
+the selection below on it (the Select Views operator and the CLI call it too, with a config).
+
 Input: the visibility matrix w [V, N], w_{v,i} = how strongly Gaussian i is visibly observed in
 candidate view v (projected alpha x opacity, depth-consistent samples only; the rasterizer computes
 it). Dense numpy / torch arrays and torch sparse (COO or CSR) tensors are accepted; entries <= 0 mean
