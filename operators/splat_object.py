@@ -213,10 +213,6 @@ def set_modifier_input(modifier, name: str, value) -> None:
     modifier[modifier.node_group.interface.items_tree[name].identifier] = value
 
 
-def get_modifier_input(modifier, name: str):
-    return modifier[modifier.node_group.interface.items_tree[name].identifier]
-
-
 def ensure_shape_object(kind: str) -> bpy.types.Object:
     """A unit splat shape (ico sphere, subdivision 1, or a 12-sided disk in the XY plane), not in any scene.
 

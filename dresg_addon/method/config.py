@@ -19,7 +19,7 @@ quaternion offsets are scale-free and use their numbers as they are.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 
 from ..util.errors import ConfigError
 
@@ -103,16 +103,6 @@ class StylizeConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-    @classmethod
-    def from_dict(cls, values: dict) -> StylizeConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ConfigError(f"unknown setting(s): {', '.join(unknown)}")
-        if "background" in values:
-            values = {**values, "background": tuple(values["background"])}
-        return cls(**values)
 
     def with_(self, **changes) -> StylizeConfig:
         return replace(self, **changes)
