@@ -10,6 +10,7 @@ import argparse
 import importlib
 import sys
 
+from . import __version__
 from .util.errors import DresgError
 
 COMMAND_MODULES = (
@@ -29,6 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m dresg_addon",
         description="Stylize 3D Gaussian Splatting scenes after a reference image (DReSG).",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         module = importlib.import_module(f".commands.{name}", __package__)

@@ -54,10 +54,10 @@ ENGINE = REPO / "dresg_addon"
 def _layer(module: str) -> int:
     """The layer of a dotted module name under dresg_addon (the package root and the CLI sit at the ends)."""
     parts = module.split(".")[1:]
-    if not parts:
-        return 0  # dresg_addon/__init__.py: only the thread policy, from util
-    if parts[0] in ("cli", "__main__"):
+    if parts and parts[0] in ("cli", "__main__"):
         return len(LAYERS) - 1
+    if not parts or parts[0] not in LAYERS:
+        return 0  # the package root and its attributes (__version__): only the thread policy, from util
     return LAYERS.index(parts[0])
 
 
@@ -123,3 +123,16 @@ def test_the_settings_enter_the_method_at_the_loop_only():
         if module.startswith("dresg_addon.method.") and target == "dresg_addon.method.config"
     }
     assert importers == {"dresg_addon.method.loop"}
+
+
+def test_version_is_one_number_for_the_cli_and_the_extension(capsys):
+    import tomllib
+
+    from dresg_addon import __version__
+    from dresg_addon.cli import main
+
+    manifest = tomllib.loads((REPO / "blender_manifest.toml").read_text())
+    assert manifest["version"] == __version__
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0 and capsys.readouterr().out.strip() == f"python -m dresg_addon {__version__}"
