@@ -14,6 +14,8 @@ node trees. Object custom properties:
 ==========================  ===========================================================
 """
 
+import functools
+
 import bmesh
 import bpy
 import numpy as np
@@ -260,6 +262,15 @@ def ensure_material(lookup: str) -> bpy.types.Material:
     return material
 
 
+def _add_node(nodes, kind: str, x: float, y: float, **settings):
+    """A new node of ``kind`` at (x, y) in a node tree, with its settings applied."""
+    new = nodes.new(kind)
+    new.location = (x, y)
+    for key, value in settings.items():
+        setattr(new, key, value)
+    return new
+
+
 def ensure_soft_material() -> bpy.types.Material:
     """Each splat's Gaussian falloff on its instance, as the rasterizer draws it (EEVEE, F12 and Rendered).
 
@@ -283,12 +294,7 @@ def ensure_soft_material() -> bpy.types.Material:
     tree.nodes.clear()
     nodes, links = tree.nodes, tree.links
 
-    def node(kind, x, y, **settings):
-        new = nodes.new(kind)
-        new.location = (x, y)
-        for key, value in settings.items():
-            setattr(new, key, value)
-        return new
+    node = functools.partial(_add_node, nodes)
 
     coordinates = node("ShaderNodeTexCoord", -1200, 200)
     geometry = node("ShaderNodeNewGeometry", -1200, -100)
@@ -375,12 +381,7 @@ def _build_node_group(group) -> None:
 
     nodes, links = group.nodes, group.links
 
-    def node(kind, x, y, **settings):
-        new = nodes.new(kind)
-        new.location = (x, y)
-        for key, value in settings.items():
-            setattr(new, key, value)
-        return new
+    node = functools.partial(_add_node, nodes)
 
     def named(name, data_type, x, y):
         attribute = node("GeometryNodeInputNamedAttribute", x, y, data_type=data_type)
