@@ -6,8 +6,7 @@ the real loop starts from the refitted render) and runs its updates. Usage:
     python scripts/try_proposal.py CONTENT STYLE [--stages 6 --updates 6] [--out-before B.png]
         [--out-after A.png] [--every PREFIX] [--set NAME=PYTHON_LITERAL ...]
 
-``--set`` overrides fields of the synth backend's ``SynthSettings`` (e.g. ``--set proposal_step=1.0`` to
-see a stage's whole synthesis rather than the step the pipeline fits).
+``--set`` overrides fields of the synth backend's ``SynthSettings`` (e.g. ``--set content_weight=0.6``).
 """
 
 from __future__ import annotations

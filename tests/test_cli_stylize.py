@@ -104,7 +104,7 @@ def test_stylize_writes_the_scene_log_views_and_checkpoint_and_resumes(files, tm
     captured = capsys.readouterr()
     assert f"wrote {out}" in captured.out and "3 active views" in captured.out
     assert "stage 1/1: fit loss" in captured.err and "post: fit loss" in captured.err
-    assert "feature loss: weight-free patch features" in captured.err
+    assert "colour fit: bounded least squares over the 3 active views" in captured.err
 
     scene, result = _scene(), read_scene(out)
     assert len(result) == len(scene)

@@ -248,11 +248,13 @@ def test_progress_reports_every_phase_with_finite_etas_after_the_first_stage(bas
     assert all(p.stages == TINY.stages for p in reports)
     for stage in (1, 2):
         fits = [p.step for p in reports if p.phase == "fit" and p.stage == stage]
-        assert fits == list(range(1, TINY.fit_steps + 1))
+        # One report per round of the colour solve, then its end.
+        assert fits[:-1] == list(range(1, len(fits))) and fits[-1] == TINY.solve_rounds
         proposals = [p.step for p in reports if p.phase == "proposal" and p.stage == stage]
         assert proposals == [0, 1, 2]  # one per active view
         assert all(math.isfinite(p.loss) for p in reports if p.phase == "fit" and p.stage == stage)
-    assert [p.step for p in reports if p.phase == "post"] == list(range(1, TINY.post_steps + 1))
+    post_steps = [p.step for p in reports if p.phase == "post"]
+    assert post_steps[:-1] == list(range(1, len(post_steps))) and post_steps[-1] == TINY.solve_rounds
     assert all(p.stage == TINY.stages + 1 for p in reports if p.phase == "post")
     later = [p for p in reports if p.stage >= 2 and p.phase != "done"]
     assert later and all(math.isfinite(p.eta_seconds) and p.eta_seconds >= 0 for p in later)
@@ -353,39 +355,53 @@ def test_a_checkpoint_of_other_inputs_or_an_unreadable_one_is_not_resumed(baseli
     assert_same_scene(result.scene, baseline.scene)
 
 
-def test_a_nan_stops_the_run_with_a_clear_error_and_keeps_the_last_good_checkpoint(baseline, tmp_path, monkeypatch):
-    import dresg_addon.method.losses as losses
+def _poison_the_fit(monkeypatch, color_fit: str, poisoned: threading.Event) -> str:
+    """Make the fit's objective NaN once ``poisoned`` is set; the message the run should stop with."""
+    if color_fit == "adam":
+        import dresg_addon.method.losses as losses
 
-    real_fit_loss = losses.fit_loss
+        real_fit_loss = losses.fit_loss
+
+        def fit_loss(*args, **kwargs):
+            terms = real_fit_loss(*args, **kwargs)
+            return replace(terms, total=terms.total * float("nan")) if poisoned.is_set() else terms
+
+        monkeypatch.setattr(losses, "fit_loss", fit_loss)
+        return "non-finite at stage {stage}, fit step 1"
+    import dresg_addon.method.color_solve as color_solve
+
+    real_value = color_solve._Problem.value
+    monkeypatch.setattr(
+        color_solve._Problem, "value", lambda self, x: float("nan") if poisoned.is_set() else real_value(self, x)
+    )
+    return "non-finite at stage {stage}"
+
+
+@pytest.mark.parametrize("color_fit", ["solve", "adam"])
+def test_a_nan_stops_the_run_with_a_clear_error_and_keeps_the_last_good_checkpoint(color_fit, tmp_path, monkeypatch):
+    config = TINY.with_(color_fit=color_fit)
     poisoned = threading.Event()
-
-    def fit_loss(*args, **kwargs):
-        terms = real_fit_loss(*args, **kwargs)
-        return replace(terms, total=terms.total * float("nan")) if poisoned.is_set() else terms
-
-    monkeypatch.setattr(losses, "fit_loss", fit_loss)
-    with pytest.raises(NumericalError, match=r"non-finite at stage 2, fit step 1.*last good stage, 1"):
-        run(checkpoint_dir=tmp_path, on_stage=_cancel_after_stage(1, poisoned))
+    message = _poison_the_fit(monkeypatch, color_fit, poisoned)
+    with pytest.raises(NumericalError, match=message.format(stage=2) + r".*last good stage, 1"):
+        run(config=config, checkpoint_dir=tmp_path, on_stage=_cancel_after_stage(1, poisoned))
     assert torch.load(tmp_path / "checkpoint.pt", weights_only=True)["stage"] == 1
 
-    monkeypatch.setattr(losses, "fit_loss", real_fit_loss)
+    poisoned.clear()
     messages = []
-    result = run(checkpoint_dir=tmp_path, messages=messages.append)
+    result = run(config=config, checkpoint_dir=tmp_path, messages=messages.append)
     assert any("resuming after stage 1" in m for m in messages)
-    assert_same_scene(result.scene, baseline.scene)
+    assert_same_scene(result.scene, run(config=config).scene)
     assert all(np.isfinite(getattr(result.scene, name)).all() for name in FIELDS)
 
 
-def test_a_nan_before_any_checkpoint_says_so_without_naming_one(monkeypatch):
-    import dresg_addon.method.losses as losses
-
-    real_fit_loss = losses.fit_loss
-    monkeypatch.setattr(
-        losses, "fit_loss", lambda *a, **k: replace(t := real_fit_loss(*a, **k), total=t.total * float("nan"))
-    )
+@pytest.mark.parametrize("color_fit", ["solve", "adam"])
+def test_a_nan_before_any_checkpoint_says_so_without_naming_one(color_fit, monkeypatch):
+    poisoned = threading.Event()
+    poisoned.set()
+    message = _poison_the_fit(monkeypatch, color_fit, poisoned)
     with pytest.raises(NumericalError) as error:
-        run(config=TINY.with_(stages=1))
-    assert "non-finite at stage 1, fit step 1" in str(error.value) and "checkpoint" not in str(error.value)
+        run(config=TINY.with_(stages=1, color_fit=color_fit))
+    assert message.format(stage=1) in str(error.value) and "checkpoint" not in str(error.value)
 
 
 # --- leave-out and SH bands -----------------------------------------------------------------------------
@@ -469,12 +485,14 @@ def test_pcgrad_fuses_the_colour_gradients_of_several_views_unless_switched_off(
         return real(grads, *args, **kwargs)
 
     monkeypatch.setattr(pcgrad, "pcgrad_fuse", spy)
-    config = TINY.with_(stages=1, fit_steps=2, post_steps=1)
+    config = TINY.with_(stages=1, fit_steps=2, post_steps=1, color_fit="adam")
     run(sphere_scene(n=200), config=config)
     assert len(calls) == 3 and all(shape[0] == 3 and shape[2] == 3 for shape in calls)
     calls.clear()
     run(sphere_scene(n=200), config=config.with_(pcgrad=False))
     assert calls == []
+    run(sphere_scene(n=200), config=config.with_(color_fit="solve"))
+    assert calls == []  # the solved fit is the joint optimum itself: no gradients to fuse
 
 
 ABLATION = TINY.with_(stages=2, updates_per_stage=1, fit_steps=2, post_steps=0)
@@ -483,7 +501,9 @@ SWITCHES = {
     "no-style-keys": {"use_style_keys": False},
     "no-style-values": {"use_style_values": False},
     "no-feedback": {"feedback": False},
-    "no-pcgrad": {"pcgrad": False},
+    "no-pcgrad": {"pcgrad": False, "color_fit": "adam"},
+    "adam-fit": {"color_fit": "adam"},
+    "no-guides": {"guide_weight": 0.0},
     "image-space": {"logit_space": False},
     **{f"schedule-{name}": {"schedule": name} for name in SCHEDULES},
 }
@@ -535,13 +555,21 @@ def test_the_log_has_one_line_per_stage_and_saved_views_hold_four_images_per_vie
     gammas = stage_gammas(config.schedule, stages)
     for entry, stage, gamma in zip(entries, stages, gammas):
         assert entry["t"] == stage.state and entry["gamma"] == gamma
-        assert len(entry["fit_losses"]) == config.fit_steps and math.isfinite(entry["energy"])
-        assert entry["views"] == 3
+        assert math.isfinite(entry["energy"]) and entry["views"] == 3
     for entry in entries:
         assert entry["peak_rss_mb"] > 0 and entry["stage_seconds"] >= 0
-        assert all(math.isfinite(v) for v in entry["fit_losses"])
-        assert entry["fit_loss_last"] == entry["fit_losses"][-1]
-    assert len(entries[-1]["fit_losses"]) == config.post_steps
+        # The solve's objective after each round: never rising.
+        losses = entry["fit_losses"]
+        assert all(math.isfinite(v) for v in losses) and losses == sorted(losses, reverse=True)
+        assert entry["fit_loss_last"] == losses[-1] and 1 <= len(losses) <= config.solve_rounds + 1
+        # How far each fit got: the residual is at most the gap, and the optimum is what the fit reached.
+        assert 0 <= entry["fit_residual"] <= entry["target_gap"]
+        assert entry["gap_closed"] == pytest.approx(1 - entry["fit_residual"] / entry["target_gap"])
+        assert entry["optimum_residual"] == pytest.approx(entry["fit_residual"], rel=1e-5)
+        assert entry["fit_moved"] > 0 and entry["fit_iterations"] >= 1
+    adam = run(config=config.with_(color_fit="adam")).log
+    assert [len(e["fit_losses"]) for e in adam] == [config.fit_steps] * 2 + [config.post_steps]
+    assert all(e["optimum_residual"] is None and e["fit_residual"] >= 0 for e in adam)
     assert [e["seconds"] for e in entries] == sorted(e["seconds"] for e in entries)
 
     assert sorted(p.name for p in views_dir.iterdir()) == ["stage01", "stage02"]

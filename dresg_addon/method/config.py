@@ -26,6 +26,7 @@ from ..util.errors import ConfigError
 SCHEDULES = ("snr-balanced", "fixed-1", "fixed-2", "triangle", "timestep-cosine")
 PROPOSALS = ("synth", "sd15")
 SH_REST_MODES = ("keep", "zero")
+COLOR_FITS = ("solve", "adam")
 
 
 @dataclass(frozen=True)
@@ -47,9 +48,17 @@ class StylizeConfig:
     use_style_keys: bool = True  # ablation "w/o K_s"
     use_style_values: bool = True  # ablation "w/o V_s"
     feedback: bool = True  # ablation "w/o feedback": keep optimising the first latent
-    # Fitting (Sec. 4.3)
-    fit_steps: int = 30
-    post_steps: int = 50  # after covariance colour transfer
+    guide_weight: float = 4.0  # how strongly a view keeps to what earlier views proposed (synth); 0: views alone
+    # Fitting (Sec. 4.3). With geometry frozen the fit is solved ("solve": bounded least squares over all
+    # active views, method/color_solve.py); "adam" takes the paper's fixed Adam steps of Eq. 16 instead,
+    # as every geometry-on run does.
+    color_fit: str = "solve"  # solve | adam
+    fit_steps: int = 30  # Adam steps per stage (geometry on, or color_fit="adam")
+    post_steps: int = 50  # after covariance colour transfer: Adam steps as fit_steps; 0 leaves the post stage out
+    solve_tolerance: float = 0.005  # a solve stops when a round lowers its objective by less than this fraction
+    solve_rounds: int = 6  # projected Newton-CG rounds per solve, at most
+    solve_cg_iterations: int = 8  # conjugate-gradient iterations per round
+    robust_power: float = 2.0  # r of sum |render - target|^r over the views' pixels: 2 least squares, < 2 robust
     color_lr: float = 0.05
     geometry_lr: float = 1e-3  # mean offsets: x the scene extent (see the module docstring)
     optimize_geometry: bool = True
@@ -89,6 +98,14 @@ class StylizeConfig:
             (self.schedule in SCHEDULES, f"schedule must be one of {', '.join(SCHEDULES)}"),
             (self.proposal in PROPOSALS, f"proposal must be one of {', '.join(PROPOSALS)}"),
             (self.sh_rest in SH_REST_MODES, f"sh_rest must be one of {', '.join(SH_REST_MODES)}"),
+            (self.color_fit in COLOR_FITS, f"color_fit must be one of {', '.join(COLOR_FITS)}"),
+            (0 < self.solve_tolerance < 1, "solve_tolerance must be in (0, 1)"),
+            (
+                self.solve_rounds >= 1 and self.solve_cg_iterations >= 1,
+                "solve_rounds and solve_cg_iterations must be >= 1",
+            ),
+            (0 < self.robust_power <= 2, "robust_power must be in (0, 2]"),
+            (self.guide_weight >= 0 and math.isfinite(self.guide_weight), "guide_weight must be >= 0"),
             (self.fit_steps >= 0 and self.post_steps >= 0, "fit_steps and post_steps must be >= 0"),
             (self.proposal_width >= 8 and self.proposal_height >= 8, "proposal size must be at least 8x8"),
             (self.render_scale > 0, "render_scale must be > 0"),
@@ -132,6 +149,21 @@ class StylizeConfig:
         from .losses import FitLossWeights
 
         return FitLossWeights(dssim=self.lambda_ssim, tv=self.lambda_tv, feature=self.lambda_feature)
+
+    def solve_settings(self):
+        """The bounded least-squares colour fit's tolerance, rounds and robustness."""
+        from .color_solve import ColorSolveSettings
+
+        return ColorSolveSettings(
+            tolerance=self.solve_tolerance,
+            max_rounds=self.solve_rounds,
+            cg_iterations=self.solve_cg_iterations,
+            robust_power=self.robust_power,
+        )
+
+    def solves_colors(self) -> bool:
+        """Whether the fit is solved (colour-only, ``color_fit="solve"``) rather than taken in Adam steps."""
+        return self.color_fit == "solve" and not self.optimize_geometry
 
     def optimizer_settings(self, extent: float):
         """Adam learning rates and geometry bounds, mean offsets scaled by the scene ``extent``."""

@@ -4,9 +4,12 @@
 - :class:`FitState`: RGB colours and bounded geometry offsets of the seen Gaussians.
 - :class:`ViewRenderer`: each active view's image of a state, colour-only (a cached sparse matrix per
   view, geometry frozen) or a full render with the offsets applied.
+- :class:`BoundedColorFit`: with geometry frozen, the fit as the bounded least-squares problem it is,
+  solved over all views at once (:mod:`.color_solve`).
 - :class:`MultiViewFit`: one Adam step of the fit loss (Eq. 16) over all views, the colour gradients
   fused by PCGrad (Eqs. 17-20) and geometry gradients averaged, then colours clamped and offsets
-  projected into their bounds.
+  projected into their bounds (geometry on, or ``color_fit="adam"``).
+- :func:`fit_residual`: how far renders are from their targets (RMSE over covered pixels), for the log.
 - :func:`result_scene`: the input scene with the fitted state written back.
 """
 
@@ -25,6 +28,7 @@ from ..scene.camera import Camera
 from ..scene.gaussians import GaussianScene
 from ..util.errors import CameraError, NumericalError
 from . import losses, pcgrad
+from .color_solve import ColorSolveResult, ColorSolveSettings, LinearViews, solve_colors
 from .optim import GeometryBounds, check_finite_gradients, project_geometry_offsets_
 
 
@@ -149,6 +153,32 @@ class ViewRenderer:
         with torch.no_grad():
             return [self(v, fit).detach() for v in range(len(self))]
 
+    def depth(self, v: int, fit: FitState) -> torch.Tensor:  # -> [H, W]
+        """The view's rendered depth (0 where nothing is seen), with the current geometry offsets."""
+        if self.fast is not None:
+            return self.fast[v].depth
+        with torch.no_grad():
+            return render(
+                self.means + fit.d_means,
+                self.quats + fit.d_quats,
+                self.log_scales + fit.d_log_scales,
+                self.logits,
+                torch.zeros_like(self.means),
+                self.cameras[v],
+                self.settings,
+            ).depth
+
+    def linear_views(self) -> LinearViews:
+        """Colour-only: each view as W_v c + b_v, b_v the background plus W_v times the kept SH offset (the
+        render's clamp of c + offset at 0 is left out: kept SH offsets are small)."""
+        if self.fast is None:
+            raise ValueError("linear views need frozen geometry (the colour-only path)")
+        constants = []
+        for f, offset in zip(self.fast, self.offsets):
+            constant = f.background.reshape(-1, 3)
+            constants.append(constant if offset is None else constant + f.matvec(offset))
+        return LinearViews(self.fast, constants)
+
 
 def feature_extractor(weight: float, dino_path: str, say: Callable[[str], None]):
     """The fit loss's feature term: DINO when local weights are given, else the weight-free patch features."""
@@ -212,6 +242,42 @@ class MultiViewFit:
             fit.colors.clamp_(0.0, 1.0)
             project_geometry_offsets_(fit.d_means, fit.d_log_scales, fit.d_quats, self.bounds)
         return total / views
+
+
+class BoundedColorFit:
+    """Eq. 16's squared error over all active views with geometry frozen, solved to its bounded optimum
+    (:func:`.color_solve.solve_colors`) instead of a fixed number of gradient steps."""
+
+    def __init__(self, renderer: ViewRenderer, fit: FitState, settings: ColorSolveSettings):
+        self.views, self.fit, self.settings = renderer.linear_views(), fit, settings
+
+    def solve(self, targets: Sequence[torch.Tensor], each_round=None) -> ColorSolveResult:  # V x [3, H, W]
+        result = solve_colors(self.views, targets, self.fit.colors.detach(), self.settings, each_round)
+        with torch.no_grad():
+            self.fit.colors.copy_(result.colors)
+        return result
+
+    def images(self, colors: torch.Tensor, like: Sequence[torch.Tensor]) -> list[torch.Tensor]:  # V x [3, H, W]
+        """The views rendered with ``colors`` [M, 3], shaped as ``like``."""
+        return [
+            img.reshape(t.shape[1], t.shape[2], 3).permute(2, 0, 1) for img, t in zip(self.views.images(colors), like)
+        ]
+
+
+def fit_residual(
+    renders: Sequence[torch.Tensor],  # V x [3, H, W]
+    targets: Sequence[torch.Tensor],  # V x [3, H, W]
+    alphas: Sequence[torch.Tensor],  # V x [H, W]
+    covered: float = 0.5,
+) -> float:
+    """RMSE between renders and targets over the covered pixels (alpha > ``covered``) of all views together;
+    0 when no pixel is covered."""
+    total, count = 0.0, 0
+    for image, target, alpha in zip(renders, targets, alphas):
+        mask = alpha > covered
+        total += float((image.double() - target.double()).square().sum(0)[mask].sum())
+        count += 3 * int(mask.sum())
+    return math.sqrt(total / count) if count else 0.0
 
 
 def result_scene(scene: GaussianScene, fit: FitState, zero_sh_rest: bool) -> GaussianScene:

@@ -9,15 +9,18 @@ What a scene does not need is left out:
 - Gaussians that no active view sees are neither rasterized nor optimised during fitting (the log says
   how many); their colours stay as they were.
 - With geometry offsets off (the default off the ``paper`` preset), fitting takes the colour-only fast
-  path: each view's image is a cached sparse matrix times the colours.
+  path: each view's image is a cached sparse matrix times the colours, and the fit is solved as the
+  bounded least-squares problem it then is, over all views at once, instead of taken in Adam steps.
 - SH rest bands are never allocated for a scene without them; with them, the stylized colour goes to the
   DC term and the rest is zeroed or kept (``StylizeConfig.sh_rest``).
 - diffusers is imported only for the ``sd15`` backend; with one active view there is no projection.
-- The stages stop early once the style distance stops improving (``StylizeConfig.early_stop``).
+- The stages stop early once the style distance stops improving, or once a stage's fit no longer moves
+  the scene (``StylizeConfig.early_stop``).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
@@ -34,7 +37,17 @@ from . import views as view_selection
 from .bookkeeping import Progress, RunHooks, RunRecord, StageUpdate, peak_rss_mb, run_id
 from .color_transfer import covariance_color_transform, coverage_weight
 from .config import StylizeConfig, check_run_settings
-from .fitting import FitState, MultiViewFit, ViewRenderer, feature_extractor, result_scene, seen_gaussians
+from .fitting import (
+    BoundedColorFit,
+    FitState,
+    MultiViewFit,
+    ViewRenderer,
+    feature_extractor,
+    fit_residual,
+    result_scene,
+    seen_gaussians,
+)
+from .guides import view_guide
 from .optim import make_fit_optimizer, scene_extent
 from .schedule import Stage, stage_gammas, stage_timesteps
 from .style_distance import sliced_wasserstein_patches
@@ -42,6 +55,7 @@ from .targets import proposal_residual, residual_target
 from .views import ActiveViews, scaled_cameras
 
 EARLY_STOP_WINDOW = 2  # stages over which the style distance must improve (one stage may pause, e.g. a coarse one)
+STILL_SCENE = 0.005  # RMSE a stage's fit must move the covered pixels by (about one 8-bit level in 0.8) to count
 
 
 @dataclass
@@ -139,6 +153,8 @@ class _StageWork:
     proposal_seconds: float = 0.0
     images: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     losses: list[float] = field(default_factory=list)
+    renders: list = field(default_factory=list)  # the views before the fit, then after it
+    closure: dict = field(default_factory=dict)  # target gap, fit residual, optimum, share closed, movement
     fitted_seconds: float = 0.0
     distance: float = 0.0
     stop_reason: str = ""
@@ -193,7 +209,11 @@ class Stylization:
         )
         self.state = state = FitState.start(self.scene, seen, config.optimize_geometry)
         self.renderer = ViewRenderer(self.scene, self.cameras, seen, raster, config.sh_rest == "keep", fast)
-        features = feature_extractor(config.lambda_feature, config.dino_path, say)
+        if config.solves_colors():
+            say(f"colour fit: bounded least squares over the {len(self.cameras)} active views, solved each stage")
+            features = None  # Eq. 16's L1, DSSIM, TV and feature terms shape gradient fits only
+        else:
+            features = feature_extractor(config.lambda_feature, config.dino_path, say)
         # Mean offsets are relative to the scene's extent (config docstring): lr and bound x extent.
         seen_numpy = seen.numpy()
         self.extent = config.scene_extent or scene_extent(
@@ -209,6 +229,7 @@ class Stylization:
         mean_params = [state.d_means] if state.d_means is not None else []
         optimizer = make_fit_optimizer([state.colors], geometry_params, settings, mean_params)
         base_renders = [r.clone() for r in self.renderer.all(state)]
+        self.solver = BoundedColorFit(self.renderer, state, config.solve_settings()) if config.solves_colors() else None
         self.fitter = MultiViewFit(
             self.renderer,
             state,
@@ -270,21 +291,32 @@ class Stylization:
         """Sec. 4.1: attention-guided proposals, one fresh-Adam step per timestep, per view."""
         self.work = work = _StageWork(time.perf_counter())
         self.backend.prepare_stage(self.states, self.style, self.contents, self.coverages)
+        guided = self.backend.takes_guides and self.config.guide_weight > 0 and len(self.cameras) > 1
+        if guided:  # views in order, each guided by the earlier ones' proposals seen from it (guides.py)
+            depths = [self.renderer.depth(v, self.state) for v in range(len(self.cameras))]
+            done: list[torch.Tensor | None] = [None] * len(self.cameras)
         for i in range(len(self.cameras)):
             self.hooks.check_cancel()
             last = work.energies[-1] if work.energies else float("nan")
             self.hooks.report(stage.index, i, len(self.cameras), "proposal", last, f"proposal for {self.names[i]}")
+            guide = None
+            if guided:
+                guide = view_guide(i, list(range(i)), done, depths, self.alphas, self.cameras, self.config.guide_weight)
+            kwargs = {"guide": guide} if guide is not None else {}
             self.states[i], energies = self.backend.propose(
-                self.states[i], stage.timesteps, self.style, self.contents[i], self.coverages[i]
+                self.states[i], stage.timesteps, self.style, self.contents[i], self.coverages[i], **kwargs
             )
+            if guided:
+                done[i] = self.backend.decode(self.states[i]).detach().float()
             work.energies.append(energies[-1])
         work.proposal_seconds = time.perf_counter() - work.started
 
     def residual_targets(self, stage: Stage) -> list[torch.Tensor]:
         """Sec. 4.2, Eqs. 10-12: each view's render moved by gamma_n x the proposal's residual."""
-        targets, gamma = [], self.gammas[stage.index - 1]
+        targets, gamma = [], self.gammas[stage.index - 1] * self.backend.residual_scale
         space = "logit" if self.config.logit_space else "image"
-        for i, image in enumerate(self.renderer.all(self.state)):
+        self.work.renders = self.renderer.all(self.state)
+        for i, image in enumerate(self.work.renders):
             decoded = self.backend.decode(self.states[i]).detach().float().cpu()
             proposal = _resize(decoded, image.shape[1], image.shape[2])
             residual = proposal_residual(proposal, image)
@@ -298,24 +330,70 @@ class Stylization:
         return targets
 
     def fit(self, stage: Stage, targets: list[torch.Tensor]) -> None:
-        """Sec. 4.3: multi-view fitting of the seen Gaussians to the targets (Eqs. 16-20)."""
+        """Sec. 4.3: multi-view fitting of the seen Gaussians to the targets (Eqs. 16-20); solved to its bounded
+        least-squares optimum with geometry frozen, else the paper's Adam steps."""
         n = stage.index
-        self.work.losses = self._fit_steps(targets, self.config.fit_steps, n, "fit", f"stage {n}, fit step")
+        self.work.closure = self._fit(targets, n, "fit", f"stage {n}, fit step")
         self.work.fitted_seconds = time.perf_counter() - self.work.started
+
+    def _fit(self, targets, stage: int, phase: str, where: str) -> dict:
+        """Fit ``targets`` (solve or Adam steps); how much of the gap to them the fit closed, for the log."""
+        before = self.work.renders or self.renderer.all(self.state)
+        optimum = None
+        if self.solver is not None:
+            rounds = self.config.solve_rounds
+            values = sum(t.numel() for t in targets)
+
+            def each_round(index: int, objective: float) -> None:  # progress shows the RMSE over all pixels
+                self.hooks.report(stage, index, rounds, phase, math.sqrt(objective / values), "solving the colour fit")
+                self.hooks.check_cancel()
+
+            self.hooks.check_cancel()
+            try:
+                result = self.solver.solve(targets, each_round)
+            except NumericalError as error:
+                raise NumericalError(
+                    f"{error} at {where.rsplit(',', 1)[0]}, so the run stopped{self.record.kept_note()}"
+                ) from None
+            self.work.losses = result.objectives
+            optimum = fit_residual(self.solver.images(result.least_squares, targets), targets, self.alphas)
+            self.hooks.report(stage, rounds, rounds, phase, math.sqrt(result.objectives[-1] / values))
+            iterations = result.iterations
+        else:
+            steps = self.config.fit_steps if phase == "fit" else self.config.post_steps
+            self.work.losses = self._fit_steps(targets, steps, stage, phase, where)
+            iterations = steps
+        after = self.renderer.all(self.state)
+        self.work.renders = after
+        gap, left = fit_residual(before, targets, self.alphas), fit_residual(after, targets, self.alphas)
+        return {
+            "target_gap": gap,
+            "fit_residual": left,
+            "optimum_residual": optimum,
+            "gap_closed": 1.0 - left / gap if gap > 0 else 1.0,
+            "fit_moved": fit_residual(after, before, self.alphas),
+            "fit_iterations": iterations,
+        }
 
     def feed_back(self, stage: Stage) -> None:
         """Algorithm 1, last line: re-encode the fitted renders (unless the ablation keeps the first latents);
-        their style distance decides the early stop."""
-        renders = self.renderer.all(self.state)
+        their style distance, and how far the fit moved them, decide the early stop."""
+        renders = self.work.renders
         self.work.distance = self.style_distance(renders)
         self.distances.append(self.work.distance)
         improvement = stage_improvement(self.distances)
-        early_stop = self.config.early_stop
-        if early_stop > 0 and stage.index < len(self.stages) and improvement is not None and improvement < early_stop:
-            self.work.stop_reason = (
-                f"over the last {EARLY_STOP_WINDOW} stages the style distance improved by {improvement:.1%} "
-                f"(< {early_stop:.1%}); the remaining stages are left out"
-            )
+        early_stop, moved = self.config.early_stop, self.work.closure.get("fit_moved")
+        if early_stop > 0 and stage.index < len(self.stages):
+            if improvement is not None and improvement < early_stop:
+                self.work.stop_reason = (
+                    f"over the last {EARLY_STOP_WINDOW} stages the style distance improved by {improvement:.1%} "
+                    f"(< {early_stop:.1%}); the remaining stages are left out"
+                )
+            elif moved is not None and moved < STILL_SCENE:
+                self.work.stop_reason = (
+                    f"the stage's fit moved the views by {moved:.4f} RMSE (< {STILL_SCENE}); the remaining stages "
+                    "are left out"
+                )
         if self.config.feedback:
             self.states = [self.backend.encode(_resize(r, *self.size)) for r in renders]
 
@@ -330,6 +408,7 @@ class Stylization:
             "fit_loss_first": work.losses[0] if work.losses else None,
             "fit_loss_last": work.losses[-1] if work.losses else None,
             "fit_losses": work.losses,
+            **work.closure,
             "stage_seconds": work.fitted_seconds,
             "proposal_seconds": work.proposal_seconds,
             "seconds": self.hooks.elapsed(),
@@ -367,13 +446,16 @@ class Stylization:
             for r, a in zip(renders, self.alphas)
         ]
         started = time.perf_counter()
-        losses = self._fit_steps(targets, steps, len(self.stages) + 1, "post", "post stage step")
+        self.work = _StageWork(started, renders=renders)
+        closure = self._fit(targets, len(self.stages) + 1, "post", "post stage step")
+        losses = self.work.losses
         self.record.append(
             {
                 "stage": "post",
                 "fit_loss_first": losses[0],
                 "fit_loss_last": losses[-1],
                 "fit_losses": losses,
+                **closure,
                 "stage_seconds": time.perf_counter() - started,
                 "seconds": self.hooks.elapsed(),
                 "peak_rss_mb": peak_rss_mb(),

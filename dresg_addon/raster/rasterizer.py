@@ -593,6 +593,30 @@ class ColorOnlyRenderer:
         rgb = _SparseColor.apply(colors.float(), self.matrix, self.matrix_t) + self.background
         return rgb.reshape(*self.shape, 3)
 
+    # The linear map itself, for solvers: W c, W^T y and the squared column norms of W.
+
+    def matvec(self, colors: torch.Tensor) -> torch.Tensor:  # [N, K] -> [H*W, K], no background
+        return torch.sparse.mm(self.matrix, colors.contiguous())
+
+    def rmatvec(self, pixels: torch.Tensor) -> torch.Tensor:  # [H*W, K] -> [N, K]
+        return torch.sparse.mm(self.matrix_t, pixels.contiguous())
+
+    def column_energy(self) -> torch.Tensor:  # [N]: sum over pixels of W[p, i]^2
+        n = self.seen.numel()
+        energy = torch.zeros(n, dtype=torch.float64, device=self._weight.device)
+        return energy.index_add_(0, self._gauss, self._weight.double().square())
+
+    def squared_rmatvec(self, pixels: torch.Tensor) -> torch.Tensor:  # [H*W, K] -> [N, K]: (W o W)^T y
+        """Per Gaussian, sum over pixels of W[p, i]^2 y[p]: the diagonal of W^T diag(y) W (a preconditioner)."""
+        squared = torch.sparse_csr_tensor(
+            self.matrix_t.crow_indices(),
+            self.matrix_t.col_indices(),
+            self.matrix_t.values().square(),
+            self.matrix_t.shape,
+            check_invariants=False,
+        )
+        return torch.sparse.mm(squared, pixels.contiguous())
+
 
 def geometry_tensors(scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """A GaussianScene's means [N, 3], quats [N, 4], log-scales [N, 3] and opacity logits [N] as float32 tensors."""

@@ -72,6 +72,12 @@ class ProposalBackend(ABC):
     """Encode / decode / propose: what the pipeline needs of any proposal backend."""
 
     name: str = "base"
+    # How gamma_n acts on this backend's residual (Eq. 12 with gamma_n x residual_scale): 1 for a latent
+    # move, less for a backend whose proposal is a fresh image rather than a small move (synth).
+    residual_scale: float = 1.0
+    # Whether ``propose`` keeps to a guide (what earlier views proposed, seen from this view), so that
+    # views agree; the loop builds guides only for backends that use them.
+    takes_guides: bool = False
 
     @abstractmethod
     def encode(self, image: torch.Tensor) -> torch.Tensor:
@@ -103,8 +109,13 @@ class ProposalBackend(ABC):
         style_image: torch.Tensor,  # [3, H, W] at the proposal resolution
         content_image: torch.Tensor | None,  # [3, H, W]
         coverage: torch.Tensor | None = None,  # [H, W] the render's alpha
+        guide: tuple[torch.Tensor, torch.Tensor] | None = None,  # ([3, H, W] image, [H, W] weight)
     ) -> tuple[torch.Tensor, list[float]]:
-        """Algorithm 1, lines 3-5: one update of ``state`` per timestep; returns the new state and an energy per update."""
+        """Algorithm 1, lines 3-5: one update of ``state`` per timestep; returns the new state and an energy per update.
+
+        ``guide`` (only passed to backends with ``takes_guides``): an image of what earlier views proposed,
+        reprojected into this view, and a per-pixel weight (0 where it has nothing to say).
+        """
 
 
 class AttentionBackend(ProposalBackend):
@@ -117,7 +128,7 @@ class AttentionBackend(ProposalBackend):
     learning_rate: float = 0.05  # latent Adam lr of the paper
     terms: EnergyTerms = EnergyTerms()
 
-    def propose(self, state, timesteps, style_image, content_image, coverage=None):
+    def propose(self, state, timesteps, style_image, content_image, coverage=None, guide=None):
         return optimize_proposal(self, state, timesteps, style_image, content_image, self.terms)
 
     @abstractmethod

@@ -1,0 +1,245 @@
+"""The colour fit with geometry frozen, solved as the bounded least-squares problem it is (Sec. 4.3, Eq. 16).
+
+With means, scales, rotations and opacities fixed, view v renders rgb_v = W_v c + b_v: W_v [P, N] holds
+each sample's T alpha (:class:`~dresg_addon.raster.ColorOnlyRenderer`), b_v what does not depend on the
+colours (background, kept SH bands). Fitting targets t_v over all active views at once is then
+
+    min_{c in [0, 1]}  f(c) = sum_v || w_v^(1/2) (W_v c + b_v - t_v) ||^2,
+
+with per-pixel weights w_v (1, or the IRLS weights of a robust fit).
+
+The box matters: without it the optimum of inconsistent targets puts half the colours far outside
+[0, 1] (measured on the bonsai: -22 to 33), which a render cannot show. So the solve is a projected
+Newton-CG method in the manner of Moré and Toraldo's GPCG (1991): each round takes the splats that are
+free (not held at a bound by a gradient pointing out of the box), runs a few conjugate-gradient
+iterations on the normal equations restricted to them, damped by lambda || c - c_round ||^2 toward the
+round's colours (lambda = ``ridge`` x the mean of diag(sum_v W_v^T W_v), Levenberg-Marquardt style: a
+splat that a few faint samples barely constrain moves little per round) and preconditioned by their
+diagonal (each splat's summed squared weights plus lambda: Jacobi), then projects the
+step onto the box with a backtracking line search that guarantees the objective decreases. It stops when
+a round lowers f by less than ``tolerance`` of f, or after ``max_rounds``. The three channels are solved
+at once, and the matrix is never formed: one product with W_v and one with W_v^T per view and
+iteration. Measured on the bonsai (8 views, a stage-3 target): 4 rounds of 8 iterations reach an
+objective within 1% of 120 iterations' (RMSE 0.0557 vs 0.0553), where 30 Adam steps of the paper's
+loss stop at 0.062.
+
+A robust fit (``robust_power`` r < 2) minimises sum |W_v c + b_v - t_v|^r per pixel and channel by
+iteratively reweighted least squares, weights (res^2 + eps^2)^((r - 2) / 2): where views disagree about a
+splat, the views that agree win instead of everyone's average.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import torch
+
+from ..util.errors import ConfigError, NumericalError
+
+IRLS_EPS = 0.02  # residual (colour units) below which a robust fit weighs a pixel as least squares does
+ARMIJO = 1e-4  # sufficient decrease of the projected line search
+BACKTRACKS = 6  # halvings of the projected step before a round gives up
+
+
+@dataclass(frozen=True)
+class ColorSolveSettings:
+    tolerance: float = 0.005  # stop when a round lowers the objective by less than this fraction
+    max_rounds: int = 6  # projected rounds (each: free set, CG, projected line search)
+    cg_iterations: int = 8  # conjugate-gradient iterations per round
+    ridge: float = 1e-2  # lambda / mean diag(sum_v W_v^T W_v): damping of each round's step
+    robust_power: float = 2.0  # r of sum |res|^r over pixels; 2: least squares, < 2: IRLS
+    robust_rounds: int = 2  # reweighting rounds after the least-squares solve when r < 2
+
+    def __post_init__(self) -> None:
+        checks = [
+            (0.0 < self.tolerance < 1.0, "tolerance must be in (0, 1)"),
+            (self.max_rounds >= 1 and self.cg_iterations >= 1, "max_rounds and cg_iterations must be >= 1"),
+            (math.isfinite(self.ridge) and self.ridge > 0.0, "ridge must be finite and > 0"),
+            (0.0 < self.robust_power <= 2.0, "robust_power must be in (0, 2]"),
+            (self.robust_rounds >= 0, "robust_rounds must be >= 0"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ConfigError(f"colour solver: {message}")
+
+
+@dataclass
+class ColorSolveResult:
+    colors: torch.Tensor  # [N, 3] in [0, 1]
+    iterations: int  # conjugate-gradient iterations, every round together
+    objectives: list[float] = field(default_factory=list)  # f at the start and after each round
+    least_squares: torch.Tensor | None = None  # [N, 3] the least-squares colours before robust rounds
+
+
+class LinearViews:
+    """The active views as linear maps of the colours: image_v = W_v c + b_v, each [P_v, 3] flat.
+
+    ``maps`` have ``matvec`` ([N, K] -> [P, K]), ``rmatvec`` ([P, K] -> [N, K]), ``column_energy``
+    ([N], sum of squared weights) and ``squared_rmatvec`` ((W o W)^T y), as
+    :class:`~dresg_addon.raster.ColorOnlyRenderer` has; ``constants`` are the b_v.
+    """
+
+    def __init__(self, maps: Sequence, constants: Sequence[torch.Tensor]):
+        if len(maps) != len(constants) or not maps:
+            raise ValueError("LinearViews needs one constant term per view, and at least one view")
+        self.maps, self.constants = list(maps), [c.reshape(-1, 3).float() for c in constants]
+        self.energy = torch.stack([m.column_energy() for m in self.maps]).sum(0).float()  # [N]
+
+    def __len__(self) -> int:
+        return len(self.maps)
+
+    def images(self, colors: torch.Tensor) -> list[torch.Tensor]:  # [N, 3] -> V x [P, 3]
+        return [m.matvec(colors) + b for m, b in zip(self.maps, self.constants)]
+
+
+class _Problem:
+    """f, its gradient and its damped normal-equation products for fixed targets and weights."""
+
+    def __init__(self, views: LinearViews, targets, ridge: float, weights):
+        self.views, self.weights = views, weights
+        self.rhs = [t - b for t, b in zip(targets, views.constants)]  # t_v - b_v
+        self.ridge = ridge * float(views.energy.mean().clamp_min(1e-12))
+        if all(w is None for w in weights):
+            diagonal = views.energy[:, None].expand(-1, 3)
+        else:
+            diagonal = torch.zeros(views.energy.numel(), 3)
+            for m, w in zip(views.maps, weights):
+                diagonal = diagonal + (m.column_energy().float()[:, None] if w is None else m.squared_rmatvec(w))
+        self.inverse_diagonal = 1.0 / (diagonal + self.ridge)
+
+    def residuals(self, x: torch.Tensor) -> list[torch.Tensor]:  # V x [P, 3]: W_v x - (t_v - b_v)
+        return [m.matvec(x) - r for m, r in zip(self.views.maps, self.rhs)]
+
+    def value(self, x: torch.Tensor) -> float:
+        total = 0.0
+        for res, w in zip(self.residuals(x), self.weights):
+            total += float((res.double().square() if w is None else w * res.double().square()).sum())
+        return total
+
+    def gradient(self, x: torch.Tensor) -> torch.Tensor:  # half the gradient of f
+        g = torch.zeros_like(x)
+        for m, res, w in zip(self.views.maps, self.residuals(x), self.weights):
+            g = g + m.rmatvec(res if w is None else res * w)
+        return g
+
+    def normal(self, p: torch.Tensor) -> torch.Tensor:  # (sum_v W_v^T w_v W_v + lambda I) p
+        out = self.ridge * p
+        for m, w in zip(self.views.maps, self.weights):
+            y = m.matvec(p)
+            out = out + m.rmatvec(y if w is None else y * w)
+        return out
+
+
+def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # per column, in float64: [N, K] -> [K]
+    return (a.double() * b.double()).sum(0)
+
+
+def _cg_step(
+    problem: _Problem, gradient: torch.Tensor, free: torch.Tensor, iterations: int
+) -> tuple[torch.Tensor, int]:
+    """Jacobi-preconditioned CG on the normal equations over the ``free`` entries, from the point whose
+    (half) ``gradient`` is given: the step [N, 3] toward the minimum on that face."""
+    mask = free.to(gradient.dtype)
+    r = -gradient * mask
+    z = r * problem.inverse_diagonal
+    p, rz = z.clone(), _dot(r, z)
+    step = torch.zeros_like(gradient)
+    for iteration in range(1, iterations + 1):
+        q = problem.normal(p) * mask
+        pq = _dot(p, q)
+        alpha = torch.where(pq > 0, rz / pq.clamp_min(1e-300), torch.zeros_like(rz)).float()
+        step.add_(p * alpha)
+        r.sub_(q * alpha)
+        z = r * problem.inverse_diagonal
+        rz_next = _dot(r, z)
+        if not bool(torch.isfinite(rz_next).all()):
+            raise NumericalError("the colour solve became non-finite")
+        if float(rz_next.max()) <= 0.0:
+            return step, iteration
+        beta = torch.where(rz > 0, rz_next / rz.clamp_min(1e-300), torch.zeros_like(rz)).float()
+        p = z + p * beta
+        rz = rz_next
+    return step, iterations
+
+
+def projected_solve(
+    views: LinearViews,
+    targets: Sequence[torch.Tensor],  # V x [P, 3]
+    start: torch.Tensor,  # [N, 3]: the warm start
+    settings: ColorSolveSettings,
+    weights: Sequence[torch.Tensor | None] | None = None,  # V x [P, 3] per-pixel weights (None: 1)
+    each_round: Callable[[int, float], None] | None = None,  # (round, objective) after each round
+) -> ColorSolveResult:
+    """min f(c) over c in [0, 1]^(N x 3) by projected Newton-CG rounds (module docstring)."""
+    weights = list(weights) if weights is not None else [None] * len(views)
+    x = start.detach().float().clamp(0.0, 1.0)
+    problem = _Problem(views, targets, settings.ridge, weights)
+    value = problem.value(x)
+    objectives, total = [value], 0
+    if not math.isfinite(value):
+        raise NumericalError("the colour fit's objective became non-finite")
+    for round_index in range(1, settings.max_rounds + 1):
+        g = problem.gradient(x)
+        free = ~(((x <= 0.0) & (g > 0)) | ((x >= 1.0) & (g < 0)))
+        step, used = _cg_step(problem, g, free, settings.cg_iterations)
+        total += used
+        # Projected backtracking: the box-projected step must lower f (Armijo on the projected move).
+        scale, accepted = 1.0, False
+        for _ in range(BACKTRACKS):
+            candidate = (x + scale * step).clamp(0.0, 1.0)
+            candidate_value = problem.value(candidate)
+            if not math.isfinite(candidate_value):
+                raise NumericalError("the colour fit's objective became non-finite")
+            if candidate_value <= value + ARMIJO * 2.0 * float(_dot(g, candidate - x).sum()):
+                accepted = True
+                break
+            scale *= 0.5
+        if not accepted:
+            break
+        drop = value - candidate_value
+        x, value = candidate, candidate_value
+        objectives.append(value)
+        if each_round is not None:
+            each_round(round_index, value)
+        if drop <= settings.tolerance * max(value, 1e-30):
+            break
+    return ColorSolveResult(x, total, objectives)
+
+
+def solve_colors(
+    views: LinearViews,
+    targets: Sequence[torch.Tensor],  # V x [3, H, W] (or [P, 3])
+    start: torch.Tensor,  # [N, 3]
+    settings: ColorSolveSettings = ColorSolveSettings(),
+    each_round: Callable[[int, float], None] | None = None,  # (round, objective) after each round
+) -> ColorSolveResult:
+    """The fitted colours in [0, 1]: bounded least squares, then IRLS rounds when ``robust_power`` < 2.
+
+    ``least_squares`` of the result holds the least-squares colours (the joint optimum the log reports).
+    ``each_round`` is called after every round (progress; it may raise to cancel).
+    """
+    flat = [t.permute(1, 2, 0).reshape(-1, 3) if t.dim() == 3 else t.reshape(-1, 3) for t in targets]
+    flat = [t.float() for t in flat]
+    if len(flat) != len(views):
+        raise ValueError(f"{len(flat)} targets for {len(views)} views")
+    for t in flat:
+        if not torch.isfinite(t).all():
+            raise NumericalError("a colour-fit target has non-finite values")
+    result = projected_solve(views, flat, start, settings, each_round=each_round)
+    result.least_squares = result.colors
+    if settings.robust_power < 2.0:
+        for _ in range(settings.robust_rounds):
+            residuals = [img - t for img, t in zip(views.images(result.colors), flat)]
+            # Normalised so that a pixel fitted within IRLS_EPS weighs about 1, as in least squares.
+            weights = [
+                (res.square() + IRLS_EPS**2).pow((settings.robust_power - 2.0) / 2.0)
+                * IRLS_EPS ** (2.0 - settings.robust_power)
+                for res in residuals
+            ]
+            robust = projected_solve(views, flat, result.colors, settings, weights, each_round)
+            robust.iterations += result.iterations
+            robust.least_squares = result.least_squares
+            result = robust
+    return result

@@ -1,0 +1,190 @@
+"""The bounded least-squares colour fit (method/color_solve.py) against dense solutions, and its stiff cases."""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from test_pipeline import away_camera, ring_cameras, sphere_scene  # noqa: E402
+
+from dresg_addon.method.color_solve import ColorSolveSettings, LinearViews, solve_colors  # noqa: E402
+from dresg_addon.raster import ColorOnlyRenderer, geometry_tensors  # noqa: E402
+from dresg_addon.scene.gaussians import GaussianScene  # noqa: E402
+from dresg_addon.util.errors import ConfigError, NumericalError  # noqa: E402
+
+
+def concatenate(a: GaussianScene, b: GaussianScene) -> GaussianScene:
+    names = ("means", "log_scales", "quats", "opacity_logits", "sh_dc")
+    return GaussianScene(**{name: np.concatenate([getattr(a, name), getattr(b, name)]) for name in names})
+
+
+def linear_views(scene, cameras) -> LinearViews:
+    maps = [ColorOnlyRenderer(*geometry_tensors(scene), camera) for camera in cameras]
+    return LinearViews(maps, [m.background for m in maps])
+
+
+def dense(views: LinearViews) -> torch.Tensor:  # [sum P, N] float64: every view's W stacked
+    n = views.energy.numel()
+    eye = torch.eye(n)
+    return torch.cat([torch.cat([m.matvec(eye[:, k : k + 1]) for k in range(n)], 1) for m in views.maps]).double()
+
+
+def objective(views: LinearViews, colors: torch.Tensor, targets) -> float:
+    return sum(float((img - t).double().square().sum()) for img, t in zip(views.images(colors), targets))
+
+
+def dense_box_optimum(matrix: torch.Tensor, rhs: torch.Tensor, iterations: int = 20000) -> torch.Tensor:
+    """min ||A x - b||^2 over x in [0, 1] by accelerated projected gradient (FISTA) on the dense matrix."""
+    lipschitz = float(torch.linalg.matrix_norm(matrix, 2)) ** 2
+    x = torch.full((matrix.shape[1], rhs.shape[1]), 0.5, dtype=torch.float64)
+    y, t = x.clone(), 1.0
+    for _ in range(iterations):
+        x_next = (y - matrix.T @ (matrix @ y - rhs) / lipschitz).clamp(0.0, 1.0)
+        t_next = (1 + math.sqrt(1 + 4 * t * t)) / 2
+        y = x_next + (t - 1) / t_next * (x_next - x)
+        x, t = x_next, t_next
+    return x
+
+
+@pytest.fixture(scope="module")
+def small():
+    """80 splats on a sphere seen by three 24x16 cameras: small enough for dense solutions."""
+    scene = sphere_scene(n=80, seed=3)
+    views = linear_views(scene, ring_cameras(3, width=24, height=16))
+    return scene, views
+
+
+def test_targets_a_scene_can_show_are_reached_as_the_dense_least_squares_solution_does(small):
+    _, views = small
+    truth = torch.from_numpy(np.random.default_rng(0).uniform(0.2, 0.8, (80, 3)).astype(np.float32))
+    targets = views.images(truth)  # exactly representable, inside the box
+    matrix = dense(views)
+    rhs = torch.cat([t - b for t, b in zip(targets, views.constants)]).double()
+    exact = torch.linalg.lstsq(matrix, rhs).solution
+    start = torch.full((80, 3), 0.5)
+    result = solve_colors(views, targets, start, ColorSolveSettings(tolerance=1e-6, max_rounds=40, cg_iterations=20))
+    reached = objective(views, result.colors, targets)
+    optimum = float((matrix @ exact - rhs).square().sum())
+    assert reached <= optimum + 1e-6 * objective(views, start, targets)
+    # Splats the views see well get their colour back.
+    seen = views.energy > 0.2 * float(views.energy.max())
+    torch.testing.assert_close(result.colors[seen], truth[seen], atol=0.02, rtol=0)
+
+
+def test_targets_outside_what_the_box_allows_reach_the_bounded_optimum(small):
+    _, views = small
+    rng = np.random.default_rng(1)
+    targets = [torch.from_numpy(rng.uniform(0, 1, (t.shape[0], 3)).astype(np.float32)) for t in views.constants]
+    matrix = dense(views)
+    rhs = torch.cat([t - b for t, b in zip(targets, views.constants)]).double()
+    reference = dense_box_optimum(matrix, rhs)
+    optimum = float((matrix @ reference - rhs).square().sum())
+    result = solve_colors(views, targets, torch.full((80, 3), 0.5), ColorSolveSettings(tolerance=1e-5, max_rounds=60))
+    assert result.colors.min() >= 0 and result.colors.max() <= 1
+    assert objective(views, result.colors, targets) <= 1.01 * optimum
+    # Unbounded least squares would leave the box: the bounds are what makes this optimum.
+    unbounded = torch.linalg.lstsq(matrix, rhs).solution
+    assert unbounded.min() < 0 or unbounded.max() > 1
+
+
+def test_the_objective_never_rises_and_the_solve_stops_at_its_tolerance(small):
+    _, views = small
+    rng = np.random.default_rng(2)
+    targets = [torch.from_numpy(rng.uniform(0, 1, (t.shape[0], 3)).astype(np.float32)) for t in views.constants]
+    settings = ColorSolveSettings(tolerance=0.01, max_rounds=50)
+    result = solve_colors(views, targets, torch.full((80, 3), 0.5), settings)
+    values = result.objectives
+    assert all(b <= a for a, b in zip(values, values[1:]))
+    assert len(values) - 1 < settings.max_rounds  # stopped by the tolerance, not the cap
+    assert values[-2] - values[-1] <= settings.tolerance * values[-1]
+    assert values[-1] == pytest.approx(objective(views, result.colors, targets), rel=1e-5)
+
+
+def test_more_iterations_fit_closer(small):
+    _, views = small
+    truth = torch.from_numpy(np.random.default_rng(4).uniform(0, 1, (80, 3)).astype(np.float32))
+    targets = views.images(truth)
+    reached = []
+    for rounds, iterations in ((1, 1), (1, 4), (3, 4), (10, 8)):
+        settings = ColorSolveSettings(tolerance=1e-9, max_rounds=rounds, cg_iterations=iterations)
+        reached.append(
+            objective(views, solve_colors(views, targets, torch.full((80, 3), 0.5), settings).colors, targets)
+        )
+    assert all(b <= a * (1 + 1e-6) for a, b in zip(reached, reached[1:])) and reached[-1] < 0.9 * reached[0]
+
+
+def test_a_solve_is_deterministic(small):
+    _, views = small
+    targets = [torch.rand(t.shape[0], 3, generator=torch.Generator().manual_seed(5)) for t in views.constants]
+    a = solve_colors(views, targets, torch.full((80, 3), 0.3))
+    b = solve_colors(views, targets, torch.full((80, 3), 0.3))
+    assert torch.equal(a.colors, b.colors) and a.objectives == b.objectives
+
+
+def test_stiff_cases_stay_finite_in_the_box():
+    scene = sphere_scene(n=60, seed=6)
+    # A view that sees nothing, and a splat that one pixel barely sees (far out on the image's edge).
+    cameras = [*ring_cameras(2, width=24, height=16), away_camera(24, 16)]
+    views = linear_views(scene, cameras)
+    assert float(views.maps[2].column_energy().sum()) == 0.0
+    start = torch.rand(60, 3, generator=torch.Generator().manual_seed(7))
+    for fill in (0.0, 0.5, 1.0):  # flat targets, at the bounds and between
+        targets = [torch.full((t.shape[0], 3), fill) for t in views.constants]
+        result = solve_colors(views, targets, start, ColorSolveSettings(robust_power=1.0))
+        assert torch.isfinite(result.colors).all() and result.colors.min() >= 0 and result.colors.max() <= 1
+        assert all(math.isfinite(v) for v in result.objectives)
+    # A tiny, faint splat in front of the sphere: one pixel, alpha a few percent.
+    speck = replace(
+        sphere_scene(n=1),
+        means=np.float32([[0.0, -0.35, -1.2]]),
+        log_scales=np.full((1, 3), math.log(1e-4), np.float32),
+        opacity_logits=np.float32([-3.0]),
+    )
+    far = replace(speck, means=np.float32([[0.0, 30.0, 0.0]]))  # behind the camera: nothing sees it
+    views = linear_views(concatenate(concatenate(scene, speck), far), cameras[:1])
+    energy = views.energy
+    assert 0 < float(energy[-2]) < 1e-3 * float(energy.max()) and float(energy[-1]) == 0
+    start = torch.rand(62, 3, generator=torch.Generator().manual_seed(8))
+    targets = [torch.ones(views.constants[0].shape[0], 3)]
+    result = solve_colors(views, targets, start)
+    assert torch.isfinite(result.colors).all() and result.colors.min() >= 0 and result.colors.max() <= 1
+    untouched = views.energy == 0
+    assert untouched.any() and torch.equal(result.colors[untouched], start[untouched])  # unseen: kept
+
+
+def test_non_finite_targets_and_bad_settings_are_refused(small):
+    _, views = small
+    targets = [torch.zeros(t.shape[0], 3) for t in views.constants]
+    targets[1][3, 0] = float("nan")
+    with pytest.raises(NumericalError, match="non-finite"):
+        solve_colors(views, targets, torch.zeros(80, 3))
+    for bad in ({"tolerance": 0.0}, {"ridge": -1.0}, {"robust_power": 3.0}, {"max_rounds": 0}):
+        with pytest.raises(ConfigError, match="colour solver"):
+            ColorSolveSettings(**bad)
+
+
+def test_a_robust_fit_follows_the_views_that_agree(small):
+    """Two views want one colour, the third another: least squares lands between, a robust fit near the two."""
+    scene, _ = small
+    views = linear_views(scene, [ring_cameras(12, width=24, height=16)[k] for k in (11, 0, 1)])  # 30 degrees apart
+    agreed, outlier = torch.full((80, 3), 0.3), torch.full((80, 3), 0.9)
+    targets = [*views.images(agreed)[:2], views.images(outlier)[2]]
+    start = torch.full((80, 3), 0.5)
+    squares = solve_colors(views, targets, start, ColorSolveSettings(tolerance=1e-4, max_rounds=20))
+    robust = solve_colors(views, targets, start, ColorSolveSettings(tolerance=1e-4, max_rounds=20, robust_power=0.8))
+    assert torch.equal(robust.least_squares, squares.colors)
+
+    def rmse(colors, v):
+        return float((views.images(colors)[v] - targets[v]).square().mean().sqrt())
+
+    # The two views that agree are fitted closer, the one that disagrees further.
+    assert rmse(robust.colors, 0) + rmse(robust.colors, 1) < 0.8 * (rmse(squares.colors, 0) + rmse(squares.colors, 1))
+    assert rmse(robust.colors, 2) > rmse(squares.colors, 2)
