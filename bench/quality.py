@@ -7,8 +7,9 @@
 
 Not a test: it prints a table. Scenes: the real bonsai (273k splats) and luigi (14.5k, y-up) from
 ``../shared/data/scenes`` and the generated demo scene; styles: every painting in
-``../shared/data/styles``. Scenes and styles that are absent are skipped (the demo scene and its
-painting always run).
+``../shared/data/styles``, or by name, where ``demo`` (the demo's painting) and ``lines`` (a generated
+pen-and-ink drawing) are made rather than read. Scenes and styles that are absent are skipped (the demo
+scene and its painting always run).
 
 Cameras. Each scene is stylized from 16 orbit cameras at 448x320 (the candidates of view selection) and
 evaluated from 16 other orbit cameras on the same ring, half a step between them: novel views that were
@@ -100,6 +101,15 @@ COLUMNS = (
 # --- worker side (one subprocess per case) ---------------------------------------------------------------
 
 
+def _generated():
+    from dresg_addon.scene.demo import demo_style_image, line_drawing_image
+
+    return {"demo": demo_style_image, "lines": line_drawing_image}
+
+
+GENERATED = {"demo": lambda: _generated()["demo"](), "lines": lambda: _generated()["lines"]()}  # made, not read
+
+
 def style_path(name: str) -> Path | None:
     path = SHARED / "styles" / f"{name}.jpg"
     return path if path.is_file() else None
@@ -107,7 +117,7 @@ def style_path(name: str) -> Path | None:
 
 def load_case(spec: dict):
     """(scene, training cameras, evaluation cameras, style [H, W, 3]) of a case."""
-    from dresg_addon.scene.demo import demo_scene, demo_style_image
+    from dresg_addon.scene.demo import demo_scene
     from dresg_addon.scene.io import read_scene
     from dresg_addon.scene.orbit import orbit_cameras
     from dresg_addon.util.imageio import read_rgb
@@ -119,7 +129,7 @@ def load_case(spec: dict):
     size = {"width": spec["width"], "height": spec["height"], "up": up}
     train = orbit_cameras(scene, spec["views"], **size)
     novel = orbit_cameras(scene, spec["views"], azimuth_offset_deg=180.0 / spec["views"], **size)
-    style = demo_style_image() if spec["style"] == "demo" else read_rgb(style_path(spec["style"]))
+    style = GENERATED[spec["style"]]() if spec["style"] in GENERATED else read_rgb(style_path(spec["style"]))
     return scene, train, novel, style
 
 
@@ -137,7 +147,7 @@ def colour_transfer_scene(scene, cameras, style):
 
 
 def evaluate(base, stylized, cameras, style) -> tuple[dict, list]:
-    """The columns over ``cameras`` (covered pixels), and the (base, stylized) renders of every camera."""
+    """The columns over ``cameras`` (covered pixels), and per camera the base render and the stylized one at 2x."""
     import torch
 
     from dresg_addon.evaluation import metrics
@@ -150,8 +160,9 @@ def evaluate(base, stylized, cameras, style) -> tuple[dict, list]:
     masks = [t.alpha for t in theirs]
     painting = torch.from_numpy(style).permute(2, 0, 1).contiguous()
     style_t = painting_at(painting, cameras[0].width, cameras[0].height)
+    scales, large = multiscale_patch_distances(stylized, base, cameras, painting)
     result = {
-        **multiscale_patch_distances(stylized, base, cameras, painting),
+        **scales,
         "sw_colors": float(metrics.sliced_wasserstein_colors(rgb, style_t, masks=masks).mean()),
         "ssim": float(
             torch.stack([metrics.ssim_per_image(a, b, mask=m) for a, b, m in zip(rgb, base_rgb, masks)]).mean()
@@ -167,7 +178,7 @@ def evaluate(base, stylized, cameras, style) -> tuple[dict, list]:
     n = len(cameras)
     for key, gap in (("short_rmse", 1), ("long_rmse", max(1, n // 2))):
         result[key] = metrics.consistency_rmse(images, depths, alphas, cameras, gap).rmse
-    return result, [(t.rgb, o.rgb) for t, o in zip(theirs, ours)]
+    return result, [(t.rgb, image.permute(1, 2, 0)) for t, image in zip(theirs, large)]
 
 
 def painting_at(painting, width: int, height: int):
@@ -179,9 +190,10 @@ def painting_at(painting, width: int, height: int):
     return resize_image(painting, max(1, round(w * factor)), max(1, round(h * factor)))
 
 
-def multiscale_patch_distances(stylized, base, cameras, painting) -> dict:
+def multiscale_patch_distances(stylized, base, cameras, painting) -> tuple[dict, list]:
     """7x7 patch SW at the fit size, half and a quarter: renders at 2x area-downsampled by 2, 4 and 8 (coverage
-    from the unstylized scene, downsampled alike), the painting resampled to each size the same way."""
+    from the unstylized scene, downsampled alike), the painting resampled to each size the same way. Also
+    returns the 2x renders [3, 2H, 2W] (the README's crops)."""
     import torch.nn.functional as F
 
     from dresg_addon.evaluation import metrics
@@ -198,7 +210,7 @@ def multiscale_patch_distances(stylized, base, cameras, painting) -> dict:
         alphas = [F.avg_pool2d(mask[None, None], factor)[0, 0] for mask in masks]
         reference = painting_at(painting, small[0].shape[2], small[0].shape[1])
         out[key] = float(metrics.sliced_wasserstein_patches(small, reference, masks=alphas).mean())
-    return out
+    return out, images
 
 
 def fit_summary(log: list[dict]) -> dict:
@@ -242,7 +254,7 @@ def run_case(spec: dict) -> dict:
             if i in spec.get("figure_views", (0,)):
                 write_image(folder / f"{spec['scene']}_{spec['style']}_{row}_v{i:02d}.png", np.ascontiguousarray(after))
                 if row == "unstylized":
-                    write_image(folder / f"{spec['scene']}_v{i:02d}.png", np.ascontiguousarray(before))
+                    write_image(folder / f"{spec['scene']}_v{i:02d}_1x.png", np.ascontiguousarray(before))
     stages = [e for e in log if e.get("stage") != "post"]
     return {
         **measured,
@@ -345,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rows", default=",".join(ROWS), help="comma-separated rows (default: all)")
     parser.add_argument("--markdown", metavar="FILE", help="also write the report to FILE (markdown)")
     parser.add_argument("--json", metavar="FILE", help="also write every measurement to FILE")
-    parser.add_argument("--figures", metavar="DIR", help="write novel-view renders of every case to DIR")
+    parser.add_argument("--figures", metavar="DIR", help="write novel-view renders at 2x of every case to DIR")
     parser.add_argument("--figure-views", default="0", help="comma-separated novel-view indices to write (default 0)")
     parser.add_argument("--threads", type=int, help="torch threads in every case (default: torch's own choice)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
@@ -363,7 +375,7 @@ def main(argv: list[str] | None = None) -> int:
         styles = [s for s in args.styles.split(",") if s]
     else:
         styles = sorted(p.stem for p in (SHARED / "styles").glob("*.jpg")) or ["demo"]
-    styles = [s for s in styles if s == "demo" or style_path(s) is not None] or ["demo"]
+    styles = [s for s in styles if s in GENERATED or style_path(s) is not None] or ["demo"]
     if args.quick:
         scenes, styles = scenes[:1] if "demo" not in scenes else ["demo"], styles[:2]
     rows = [r for r in args.rows.split(",") if r]

@@ -111,14 +111,16 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
     )
     fit_steps: IntProperty(
         name="Fit Steps",
-        description="How closely the splats follow each stage's painted views (time grows with it)",
+        description="With Geometry Offsets on: how many steps the splats take towards each stage's painted views "
+        "(time grows with it). Colour-only runs solve each fit to its best instead",
         min=0,
         soft_max=200,
         default=_default("fit_steps"),
     )
     post_steps: IntProperty(
         name="Final Colour Steps",
-        description="Steps of the last stage, which matches the painting's colours",
+        description="The last stage, which matches the painting's colours: 0 leaves it out; with Geometry Offsets "
+        "on, its number of steps",
         min=0,
         default=_default("post_steps"),
     )

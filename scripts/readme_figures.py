@@ -6,9 +6,11 @@
         --out docs/before_after.png
 
 Every picture is a novel view of the benchmark (a camera between the ones the scene was stylized from), so
-the figure shows what the table measures. Rows are scene x style pairs; columns: the unstylized scene, the
-colour-transfer baseline, the ``standard`` preset (or ``--row``), and the style painting. Needs the
-shared paintings (../shared/data/styles) for the style column.
+the figure shows what the table measures, rendered at twice the fit size and cropped to the fit size around
+the object, so that marks can be seen. Rows are scene x style pairs; columns: the unstylized scene, the
+colour-transfer baseline, the ``standard`` preset (or ``--row``), and the painting at the same scale (its
+shorter side twice the fit height, as the metrics resample it), centre-cropped. Needs the shared
+paintings (../shared/data/styles) for the style column; ``demo`` and ``lines`` are generated.
 """
 
 from __future__ import annotations
@@ -22,22 +24,34 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from dresg_addon.scene.demo import demo_style_image  # noqa: E402
-from dresg_addon.util.imageio import letterbox, read_rgb, write_image  # noqa: E402
+from dresg_addon.scene.demo import demo_style_image, line_drawing_image  # noqa: E402
+from dresg_addon.util.imageio import letterbox, read_rgb, resize_image, write_image  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 
 
-def crop(image: np.ndarray, fraction: float) -> np.ndarray:  # [H, W, 3] -> [H, w, 3], the central columns
-    width = image.shape[1]
-    keep = max(1, round(width * fraction))
-    start = (width - keep) // 2
-    return image[:, start : start + keep]
+def crop_box(image: np.ndarray, width: int, height: int) -> tuple[int, int]:
+    """Top-left corner of a ``width`` x ``height`` window centred on what the image shows (non-black pixels)."""
+    shown = np.nonzero(image.max(-1) > 0.02)
+    full_h, full_w = image.shape[:2]
+    if shown[0].size == 0:
+        return (full_h - height) // 2, (full_w - width) // 2
+    cy, cx = (shown[0].min() + shown[0].max()) // 2, (shown[1].min() + shown[1].max()) // 2
+    return int(np.clip(cy - height // 2, 0, full_h - height)), int(np.clip(cx - width // 2, 0, full_w - width))
 
 
-def style_tile(name: str, height: int, width: int) -> np.ndarray:
-    style = demo_style_image() if name == "demo" else read_rgb(DATA / "styles" / f"{name}.jpg")
-    return letterbox(style, width, height)
+def style_tile(name: str, height: int, width: int, short_side: int) -> np.ndarray:
+    """The painting at the renders' scale (its shorter side ``short_side`` pixels, as the metrics resample it),
+    centre-cropped to ``width`` x ``height``; letterboxed when it is smaller."""
+    generated = {"demo": demo_style_image, "lines": line_drawing_image}
+    style = generated[name]() if name in generated else read_rgb(DATA / "styles" / f"{name}.jpg")
+    h, w = style.shape[:2]
+    scale = short_side / min(h, w)
+    style = resize_image(style, max(1, round(w * scale)), max(1, round(h * scale)))
+    if style.shape[0] < height or style.shape[1] < width:
+        return letterbox(style, width, height)
+    top, left = (style.shape[0] - height) // 2, (style.shape[1] - width) // 2
+    return style[top : top + height, left : left + width]
 
 
 def main() -> int:
@@ -46,19 +60,21 @@ def main() -> int:
     parser.add_argument("--pairs", required=True, help="comma-separated scene:style pairs, one row each")
     parser.add_argument("--view", type=int, default=3, help="novel-view index (as written by --figure-views)")
     parser.add_argument("--row", default="standard", help="the stylized row to show (default: standard)")
-    parser.add_argument("--crop", type=float, default=0.62, help="share of the width kept, centred")
     parser.add_argument("--out", default=str(REPO / "docs" / "before_after.png"))
     args = parser.parse_args()
     folder = Path(args.figures)
     rows = []
     for pair in args.pairs.split(","):
         scene, style = pair.split(":")
-        before = read_rgb(folder / f"{scene}_v{args.view:02d}.png")
-        transfer = read_rgb(folder / f"{scene}_{style}_colour-transfer_v{args.view:02d}.png")
-        ours = read_rgb(folder / f"{scene}_{style}_{args.row}_v{args.view:02d}.png")
-        tiles = [crop(image, args.crop) for image in (before, transfer, ours)]
-        tiles.append(style_tile(style, *tiles[0].shape[:2]))
-        gap = np.ones((tiles[0].shape[0], 4, 3), np.float32)
+        images = [
+            read_rgb(folder / f"{scene}_{style}_{row}_v{args.view:02d}.png")
+            for row in ("unstylized", "colour-transfer", args.row)
+        ]
+        height, width = images[0].shape[0] // 2, images[0].shape[1] // 2  # the fit size: a 2x crop of the object
+        top, left = crop_box(images[0], width, height)
+        tiles = [image[top : top + height, left : left + width] for image in images]
+        tiles.append(style_tile(style, height, width, images[0].shape[0] // 2 * 2))
+        gap = np.ones((height, 4, 3), np.float32)
         rows.append(np.concatenate([t for tile in tiles for t in (tile, gap)][:-1], 1))
         rows.append(np.ones((4, rows[-1].shape[1], 3), np.float32))
     write_image(args.out, np.concatenate(rows[:-1], 0))

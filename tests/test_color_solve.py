@@ -27,8 +27,8 @@ def concatenate(a: GaussianScene, b: GaussianScene) -> GaussianScene:
 
 
 def linear_views(scene, cameras) -> LinearViews:
-    maps = [ColorOnlyRenderer(*geometry_tensors(scene), camera) for camera in cameras]
-    return LinearViews(maps, [m.background for m in maps])
+    renderers = [ColorOnlyRenderer(*geometry_tensors(scene), camera) for camera in cameras]
+    return LinearViews([r.linear_map() for r in renderers], [r.background for r in renderers])
 
 
 def dense(views: LinearViews) -> torch.Tensor:  # [sum P, N] float64: every view's W stacked

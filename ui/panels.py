@@ -136,7 +136,9 @@ class DRESG_PT_style(ChildPanel, bpy.types.Panel):
                 layout.label(text="Set the SD1.5 model path in the add-on preferences", icon="ERROR")
             layout.label(text="Without a GPU a run takes hours", icon="INFO")
         layout.prop(settings, "stages")
-        layout.prop(settings, "fit_steps")
+        steps = layout.row()
+        steps.active = settings.optimize_geometry  # colour-only fits are solved, not stepped
+        steps.prop(settings, "fit_steps")
         column = layout.column(align=True)
         column.prop(settings, "proposal_width", text="Resolution X")
         column.prop(settings, "proposal_height", text="Y")

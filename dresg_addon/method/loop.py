@@ -25,7 +25,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -229,7 +229,19 @@ class Stylization:
         mean_params = [state.d_means] if state.d_means is not None else []
         optimizer = make_fit_optimizer([state.colors], geometry_params, settings, mean_params)
         base_renders = [r.clone() for r in self.renderer.all(state)]
-        self.solver = BoundedColorFit(self.renderer, state, config.solve_settings()) if config.solves_colors() else None
+        self.solver = None
+        if config.solves_colors():
+            prior = None
+            mu = float(os.environ.get("DRESG_PRIOR", "0"))
+            if mu > 0:
+                from .color_transfer import fit_color_map
+
+                style = torch.from_numpy(self.style_rgb).permute(2, 0, 1).contiguous()
+                alphas = [self.renderer.alpha(v, state) for v in range(len(self.cameras))]
+                color_map = fit_color_map(base_renders, style, alphas, True)
+                anchor = color_map.apply_to_images(state.colors.detach().T[:, :, None])[:, :, 0].T.clamp(0, 1)
+                prior = (anchor.contiguous(), mu)
+            self.solver = BoundedColorFit(self.renderer, state, config.solve_settings(), prior)
         self.fitter = MultiViewFit(
             self.renderer,
             state,
@@ -356,7 +368,9 @@ class Stylization:
                     f"{error} at {where.rsplit(',', 1)[0]}, so the run stopped{self.record.kept_note()}"
                 ) from None
             self.work.losses = result.objectives
-            optimum = fit_residual(self.solver.images(result.least_squares, targets), targets, self.alphas)
+            if result.least_squares is not result.colors:  # a robust fit: the least-squares optimum differs
+                squares = self.renderer.all(replace(self.state, colors=result.least_squares))
+                optimum = fit_residual(squares, targets, self.alphas)
             self.hooks.report(stage, rounds, rounds, phase, math.sqrt(result.objectives[-1] / values))
             iterations = result.iterations
         else:
@@ -366,6 +380,8 @@ class Stylization:
         after = self.renderer.all(self.state)
         self.work.renders = after
         gap, left = fit_residual(before, targets, self.alphas), fit_residual(after, targets, self.alphas)
+        if self.solver is not None and optimum is None:
+            optimum = left  # the solve's result is the joint least-squares optimum (to its tolerance)
         return {
             "target_gap": gap,
             "fit_residual": left,

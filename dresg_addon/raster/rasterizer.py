@@ -527,6 +527,55 @@ class _SparseColor(torch.autograd.Function):
         return torch.sparse.mm(ctx.matrix_t, grad.contiguous()), None, None
 
 
+class SparseColorMap:
+    """The linear map from colours to an image, W [P, N] (each entry a sample's T * alpha), as CSR matrices
+    both ways: ``matvec`` W c, ``rmatvec`` W^T y, ``column_energy`` and ``squared_rmatvec`` for solvers."""
+
+    def __init__(self, pixel: torch.Tensor, gauss: torch.Tensor, weight: torch.Tensor, n_pix: int, n_columns: int):
+        self.shape = (n_pix, n_columns)
+        self._gauss, self._weight = gauss, weight
+        # 32-bit indices where they fit: the products read every index, and half the bytes make them ~40% faster.
+        index = torch.int32 if max(n_pix, n_columns, weight.numel()) < 2**31 - 1 else torch.int64
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+            crow = torch.zeros(n_pix + 1, dtype=torch.long, device=pixel.device)
+            crow[1:] = torch.cumsum(torch.bincount(pixel, minlength=n_pix), 0)
+            self.matrix = torch.sparse_csr_tensor(
+                crow.to(index), gauss.to(index), weight, (n_pix, n_columns), check_invariants=False
+            )
+            order = torch.sort(gauss, stable=True).indices
+            crow_t = torch.zeros(n_columns + 1, dtype=torch.long, device=pixel.device)
+            crow_t[1:] = torch.cumsum(torch.bincount(gauss, minlength=n_columns), 0)
+            self.matrix_t = torch.sparse_csr_tensor(
+                crow_t.to(index), pixel[order].to(index), weight[order], (n_columns, n_pix), check_invariants=False
+            )
+
+    @property
+    def nnz(self) -> int:
+        return int(self._weight.numel())
+
+    def matvec(self, colors: torch.Tensor) -> torch.Tensor:  # [N, K] -> [P, K]
+        return torch.sparse.mm(self.matrix, colors.contiguous())
+
+    def rmatvec(self, pixels: torch.Tensor) -> torch.Tensor:  # [P, K] -> [N, K]
+        return torch.sparse.mm(self.matrix_t, pixels.contiguous())
+
+    def column_energy(self) -> torch.Tensor:  # [N] float64: sum over pixels of W[p, i]^2
+        energy = torch.zeros(self.shape[1], dtype=torch.float64, device=self._weight.device)
+        return energy.index_add_(0, self._gauss, self._weight.double().square())
+
+    def squared_rmatvec(self, pixels: torch.Tensor) -> torch.Tensor:  # [P, K] -> [N, K]: (W o W)^T y
+        """Per Gaussian, sum over pixels of W[p, i]^2 y[p]: the diagonal of W^T diag(y) W (a preconditioner)."""
+        squared = torch.sparse_csr_tensor(
+            self.matrix_t.crow_indices(),
+            self.matrix_t.col_indices(),
+            self.matrix_t.values().square(),
+            self.matrix_t.shape,
+            check_invariants=False,
+        )
+        return torch.sparse.mm(squared, pixels.contiguous())
+
+
 class ColorOnlyRenderer:
     """Colour-only fast path for frozen geometry.
 
@@ -558,23 +607,7 @@ class ColorOnlyRenderer:
         self._build(n)
 
     def _build(self, n_columns: int) -> None:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-            self._build_matrices(n_columns)
-
-    def _build_matrices(self, n_columns: int) -> None:
-        n_pix = self.shape[0] * self.shape[1]
-        crow = torch.zeros(n_pix + 1, dtype=torch.long, device=self._pixel.device)
-        crow[1:] = torch.cumsum(torch.bincount(self._pixel, minlength=n_pix), 0)
-        self.matrix = torch.sparse_csr_tensor(
-            crow, self._gauss, self._weight, (n_pix, n_columns), check_invariants=False
-        )
-        order = torch.sort(self._gauss, stable=True).indices
-        crow_t = torch.zeros(n_columns + 1, dtype=torch.long, device=self._pixel.device)
-        crow_t[1:] = torch.cumsum(torch.bincount(self._gauss, minlength=n_columns), 0)
-        self.matrix_t = torch.sparse_csr_tensor(
-            crow_t, self._pixel[order], self._weight[order], (n_columns, n_pix), check_invariants=False
-        )
+        self.map = SparseColorMap(self._pixel, self._gauss, self._weight, self.shape[0] * self.shape[1], n_columns)
 
     def restrict(self, keep: torch.Tensor) -> ColorOnlyRenderer:
         """Use only the Gaussians ``keep`` (sorted indices, a superset of ``seen``): colours become [len(keep), 3]."""
@@ -587,35 +620,21 @@ class ColorOnlyRenderer:
         self._build(keep.numel())
         return self
 
+    def linear_map(self, min_weight: float = 0.0) -> SparseColorMap:
+        """W itself, or W without the samples whose T * alpha is below ``min_weight`` (deep, faint samples: on the
+        bonsai the 39% of samples under 1e-3 carry 0.5% of the weight), for solvers that apply it many times."""
+        if min_weight <= 0.0:
+            return self.map
+        keep = self._weight >= min_weight
+        return SparseColorMap(
+            self._pixel[keep], self._gauss[keep], self._weight[keep], self.map.shape[0], self.map.shape[1]
+        )
+
     def __call__(self, colors: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [H, W, 3]
         if colors.device.type == "cpu":
             adapt_torch_threads()
-        rgb = _SparseColor.apply(colors.float(), self.matrix, self.matrix_t) + self.background
+        rgb = _SparseColor.apply(colors.float(), self.map.matrix, self.map.matrix_t) + self.background
         return rgb.reshape(*self.shape, 3)
-
-    # The linear map itself, for solvers: W c, W^T y and the squared column norms of W.
-
-    def matvec(self, colors: torch.Tensor) -> torch.Tensor:  # [N, K] -> [H*W, K], no background
-        return torch.sparse.mm(self.matrix, colors.contiguous())
-
-    def rmatvec(self, pixels: torch.Tensor) -> torch.Tensor:  # [H*W, K] -> [N, K]
-        return torch.sparse.mm(self.matrix_t, pixels.contiguous())
-
-    def column_energy(self) -> torch.Tensor:  # [N]: sum over pixels of W[p, i]^2
-        n = self.seen.numel()
-        energy = torch.zeros(n, dtype=torch.float64, device=self._weight.device)
-        return energy.index_add_(0, self._gauss, self._weight.double().square())
-
-    def squared_rmatvec(self, pixels: torch.Tensor) -> torch.Tensor:  # [H*W, K] -> [N, K]: (W o W)^T y
-        """Per Gaussian, sum over pixels of W[p, i]^2 y[p]: the diagonal of W^T diag(y) W (a preconditioner)."""
-        squared = torch.sparse_csr_tensor(
-            self.matrix_t.crow_indices(),
-            self.matrix_t.col_indices(),
-            self.matrix_t.values().square(),
-            self.matrix_t.shape,
-            check_invariants=False,
-        )
-        return torch.sparse.mm(squared, pixels.contiguous())
 
 
 def geometry_tensors(scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:

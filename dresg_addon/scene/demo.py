@@ -355,6 +355,71 @@ def demo_style_image(width: int = 512, height: int = 384, seed: int = 0) -> np.n
     return np.clip(canvas, 0.0, 1.0).astype(np.float32)
 
 
+def _ink_line(canvas: np.ndarray, points: np.ndarray, width: float, darkness: float) -> None:
+    """Draw an anti-aliased polyline ``points`` [K, 2] (x, y) of ``width`` pixels into ``canvas`` [H, W] (ink)."""
+    height, canvas_width = canvas.shape
+    half = 0.5 * width
+    for (ax, ay), (bx, by) in zip(points[:-1], points[1:]):
+        x0, x1 = max(0, int(min(ax, bx) - half - 1)), min(canvas_width, int(max(ax, bx) + half + 2))
+        y0, y1 = max(0, int(min(ay, by) - half - 1)), min(height, int(max(ay, by) + half + 2))
+        if x0 >= x1 or y0 >= y1:
+            continue
+        yy, xx = np.mgrid[y0:y1, x0:x1].astype(np.float64) + 0.5
+        dx, dy = bx - ax, by - ay
+        t = np.clip(((xx - ax) * dx + (yy - ay) * dy) / max(dx * dx + dy * dy, 1e-12), 0.0, 1.0)
+        distance = np.hypot(xx - ax - t * dx, yy - ay - t * dy)
+        coverage = np.clip(half + 0.5 - distance, 0.0, 1.0) * darkness
+        canvas[y0:y1, x0:x1] = np.maximum(canvas[y0:y1, x0:x1], coverage)
+
+
+def line_drawing_image(width: int = 512, height: int = 384, seed: int = 0) -> np.ndarray:  # -> [H, W, 3]
+    """A procedural pen-and-ink drawing: black lines on warm paper, the opposite of a painting's flat colour.
+
+    Long flowing contour lines follow a smooth direction field; shading is hatching, short parallel pen
+    strokes whose density follows a smooth shade field, with a second, crossing set where it is darkest;
+    the paper shows everywhere between lines. Deterministic for a seed; values in [0, 1].
+    """
+    if width < 2 or height < 2:
+        raise ValueError(f"line_drawing_image: size {width}x{height} must be at least 2x2")
+    rng = np.random.default_rng(seed)
+    size = float(max(width, height))
+    flow = _wave_field(rng, 4, 0.6, 1.8)
+    shade = _wave_field(rng, 5, 0.8, 2.2)
+    ink = np.zeros((height, width), np.float64)
+    line = max(1.0, size / 400.0)
+    # Contours: streamlines of the direction field, a few hundred pixels long.
+    for _ in range(max(1, int(70 * width * height / (512 * 384)))):
+        x, y = rng.uniform(0, width), rng.uniform(0, height)
+        points = [(x, y)]
+        for _ in range(int(rng.uniform(30, 90))):
+            angle = 2.0 * flow(x / size, y / size)
+            x, y = x + 3.0 * math.cos(angle), y + 3.0 * math.sin(angle)
+            points.append((x, y))
+        _ink_line(ink, np.asarray(points), line * rng.uniform(0.8, 1.4), rng.uniform(0.75, 0.95))
+    # Hatching: in cells of ~24 px, parallel strokes as dense as the shade is dark.
+    cell = max(8, int(size / 21))
+    for cy in range(0, height, cell):
+        for cx in range(0, width, cell):
+            darkness = (np.tanh(1.5 * shade((cx + cell / 2) / size, (cy + cell / 2) / size)) + 1.0) / 2.0
+            if darkness < 0.35:
+                continue
+            sets = [rng.uniform(0.4, 1.1)] + ([rng.uniform(1.9, 2.6)] if darkness > 0.7 else [])
+            for angle in sets:
+                spacing = cell / (2.0 + 6.0 * darkness)
+                direction, normal = (
+                    np.array([math.cos(angle), math.sin(angle)]),
+                    np.array([-math.sin(angle), math.cos(angle)]),
+                )
+                centre = np.array([cx + cell / 2, cy + cell / 2])
+                for k in np.arange(-cell / 2, cell / 2, spacing):
+                    middle = centre + k * normal + rng.normal(0.0, 0.6, 2)
+                    reach = 0.5 * cell * rng.uniform(0.6, 0.95)
+                    _ink_line(ink, np.stack([middle - reach * direction, middle + reach * direction]), line * 0.8, 0.85)
+    paper = np.array([0.96, 0.93, 0.86]) * (1.0 + 0.02 * rng.normal(size=(height, width, 1)))
+    inked = paper * (1.0 - ink[..., None]) + np.array([0.08, 0.07, 0.09]) * ink[..., None]
+    return np.clip(inked, 0.0, 1.0).astype(np.float32)
+
+
 def write_demo_assets(folder: str | os.PathLike, seed: int = 0) -> dict[str, Path]:
     """Write the demo as ordinary files: ``scene.ply`` (graphdeco), ``cameras.json`` (graphdeco) and
     ``style.png``; returns their paths under the keys ``"scene"``, ``"cameras"`` and ``"style"``."""

@@ -611,11 +611,12 @@ class SynthBackend(ProposalBackend):
         level = plan[0][0]
         stage = self._stage if self._stage is not None and self._stage.style_key == keys[0] else None
         if stage is not None:
-            x = downsample(recolor(render, stage.states, coverage), level)
+            start = recolor(render, stage.states, coverage)
         else:
-            x = downsample(to_style_colors(render, style, coverage, s.histogram_matching), level)
+            start = to_style_colors(render, style, coverage, s.histogram_matching)
         if guide is not None:
-            x = _blend(x, downsample(guide[0], level), downsample(guide[1][None], level)[0])
+            start = _blend(start, guide[0], guide[1])
+        x = downsample(start, level)
         energies = []
         for j, ((pass_level, size), timestep) in enumerate(zip(plan, timesteps)):
             if pass_level != level:
@@ -625,7 +626,10 @@ class SynthBackend(ProposalBackend):
             noise = s.noise * math.sqrt(noise_fraction) if j == 0 else 0.0
             x, energy = self._pass(x, style, content, coverage, keys, level, size, noise, generator, guide)
             energies.append(energy)
-        x = upsample(x, height, width)
+        if level > 0:
+            # A stage that ends at a coarse level changes the coarse bands only: the start's finer detail
+            # (its Laplacian bands above this level) goes back on, or the proposal would be a blurred image.
+            x = upsample(x, height, width) + (start - upsample(downsample(start, level), height, width))
         keep = 1.0 if coverage is None else coverage_weight(coverage)[None]
         return (render + keep * (x - render)).clamp(0.0, 1.0), energies
 
