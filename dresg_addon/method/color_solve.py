@@ -97,23 +97,16 @@ class LinearViews:
 class _Problem:
     """f, its gradient and its damped normal-equation products for fixed targets and weights."""
 
-    def __init__(self, views: LinearViews, targets, ridge: float, weights, prior=None):
+    def __init__(self, views: LinearViews, targets, ridge: float, weights):
         self.views, self.weights = views, weights
         self.rhs = [t - b for t, b in zip(targets, views.constants)]  # t_v - b_v
         self.ridge = ridge * float(views.energy.mean().clamp_min(1e-12))
-        # The prior mu e_i || c_i - a_i ||^2 (e_i: splat i's summed squared weights): per splat, a pull toward
-        # a_i as strong as mu of what the views say, so only what the views leave open falls back to it.
-        self.prior_anchor, self.prior_weight = (
-            (None, None) if prior is None else (prior[0], prior[1] * views.energy[:, None])
-        )
         if all(w is None for w in weights):
             diagonal = views.energy[:, None].expand(-1, 3)
         else:
             diagonal = torch.zeros(views.energy.numel(), 3)
             for m, w in zip(views.maps, weights):
                 diagonal = diagonal + (m.column_energy().float()[:, None] if w is None else m.squared_rmatvec(w))
-        if self.prior_weight is not None:
-            diagonal = diagonal + self.prior_weight
         self.inverse_diagonal = 1.0 / (diagonal + self.ridge)
 
     def residuals(self, x: torch.Tensor) -> list[torch.Tensor]:  # V x [P, 3]: W_v x - (t_v - b_v)
@@ -121,20 +114,18 @@ class _Problem:
 
     def value(self, x: torch.Tensor) -> float:
         total = 0.0
-        if self.prior_weight is not None:
-            total += float((self.prior_weight * (x - self.prior_anchor).square()).double().sum())
         for res, w in zip(self.residuals(x), self.weights):
             total += float((res.double().square() if w is None else w * res.double().square()).sum())
         return total
 
     def gradient(self, x: torch.Tensor) -> torch.Tensor:  # half the gradient of f
-        g = torch.zeros_like(x) if self.prior_weight is None else self.prior_weight * (x - self.prior_anchor)
+        g = torch.zeros_like(x)
         for m, res, w in zip(self.views.maps, self.residuals(x), self.weights):
             g = g + m.rmatvec(res if w is None else res * w)
         return g
 
-    def normal(self, p: torch.Tensor) -> torch.Tensor:  # (sum_v W_v^T w_v W_v + prior + lambda I) p
-        out = self.ridge * p if self.prior_weight is None else (self.ridge + self.prior_weight) * p
+    def normal(self, p: torch.Tensor) -> torch.Tensor:  # (sum_v W_v^T w_v W_v + lambda I) p
+        out = self.ridge * p
         for m, w in zip(self.views.maps, self.weights):
             y = m.matvec(p)
             out = out + m.rmatvec(y if w is None else y * w)
@@ -180,12 +171,11 @@ def projected_solve(
     settings: ColorSolveSettings,
     weights: Sequence[torch.Tensor | None] | None = None,  # V x [P, 3] per-pixel weights (None: 1)
     each_round: Callable[[int, float], None] | None = None,  # (round, objective) after each round
-    prior: tuple[torch.Tensor, float] | None = None,  # (anchor [N, 3], mu)
 ) -> ColorSolveResult:
     """min f(c) over c in [0, 1]^(N x 3) by projected Newton-CG rounds (module docstring)."""
     weights = list(weights) if weights is not None else [None] * len(views)
     x = start.detach().float().clamp(0.0, 1.0)
-    problem = _Problem(views, targets, settings.ridge, weights, prior)
+    problem = _Problem(views, targets, settings.ridge, weights)
     value = problem.value(x)
     objectives, total = [value], 0
     if not math.isfinite(value):
@@ -224,7 +214,6 @@ def solve_colors(
     start: torch.Tensor,  # [N, 3]
     settings: ColorSolveSettings = ColorSolveSettings(),
     each_round: Callable[[int, float], None] | None = None,  # (round, objective) after each round
-    prior: tuple[torch.Tensor, float] | None = None,  # (anchor [N, 3], mu): mu e_i || c_i - a_i ||^2
 ) -> ColorSolveResult:
     """The fitted colours in [0, 1]: bounded least squares, then IRLS rounds when ``robust_power`` < 2.
 
@@ -238,7 +227,7 @@ def solve_colors(
     for t in flat:
         if not torch.isfinite(t).all():
             raise NumericalError("a colour-fit target has non-finite values")
-    result = projected_solve(views, flat, start, settings, each_round=each_round, prior=prior)
+    result = projected_solve(views, flat, start, settings, each_round=each_round)
     result.least_squares = result.colors
     if settings.robust_power < 2.0:
         for _ in range(settings.robust_rounds):
@@ -249,7 +238,7 @@ def solve_colors(
                 * IRLS_EPS ** (2.0 - settings.robust_power)
                 for res in residuals
             ]
-            robust = projected_solve(views, flat, result.colors, settings, weights, each_round, prior)
+            robust = projected_solve(views, flat, result.colors, settings, weights, each_round)
             robust.iterations += result.iterations
             robust.least_squares = result.least_squares
             result = robust

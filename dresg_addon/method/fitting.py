@@ -254,12 +254,12 @@ class BoundedColorFit:
     """Eq. 16's squared error over all active views with geometry frozen, solved to its bounded optimum
     (:func:`.color_solve.solve_colors`) instead of a fixed number of gradient steps."""
 
-    def __init__(self, renderer: ViewRenderer, fit: FitState, settings: ColorSolveSettings, prior=None):
+    def __init__(self, renderer: ViewRenderer, fit: FitState, settings: ColorSolveSettings):
         self.views = renderer.linear_views(SOLVE_MIN_WEIGHT)
-        self.fit, self.settings, self.prior = fit, settings, prior
+        self.fit, self.settings = fit, settings
 
     def solve(self, targets: Sequence[torch.Tensor], each_round=None) -> ColorSolveResult:  # V x [3, H, W]
-        result = solve_colors(self.views, targets, self.fit.colors.detach(), self.settings, each_round, self.prior)
+        result = solve_colors(self.views, targets, self.fit.colors.detach(), self.settings, each_round)
         with torch.no_grad():
             self.fit.colors.copy_(result.colors)
         return result

@@ -229,19 +229,7 @@ class Stylization:
         mean_params = [state.d_means] if state.d_means is not None else []
         optimizer = make_fit_optimizer([state.colors], geometry_params, settings, mean_params)
         base_renders = [r.clone() for r in self.renderer.all(state)]
-        self.solver = None
-        if config.solves_colors():
-            prior = None
-            mu = float(os.environ.get("DRESG_PRIOR", "0"))
-            if mu > 0:
-                from .color_transfer import fit_color_map
-
-                style = torch.from_numpy(self.style_rgb).permute(2, 0, 1).contiguous()
-                alphas = [self.renderer.alpha(v, state) for v in range(len(self.cameras))]
-                color_map = fit_color_map(base_renders, style, alphas, True)
-                anchor = color_map.apply_to_images(state.colors.detach().T[:, :, None])[:, :, 0].T.clamp(0, 1)
-                prior = (anchor.contiguous(), mu)
-            self.solver = BoundedColorFit(self.renderer, state, config.solve_settings(), prior)
+        self.solver = BoundedColorFit(self.renderer, state, config.solve_settings()) if config.solves_colors() else None
         self.fitter = MultiViewFit(
             self.renderer,
             state,
