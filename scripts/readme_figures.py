@@ -25,33 +25,15 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from dresg_addon.scene.demo import demo_style_image, line_drawing_image  # noqa: E402
-from dresg_addon.util.imageio import letterbox, read_rgb, resize_image, write_image  # noqa: E402
+from dresg_addon.util.imageio import at_scale, object_window, read_rgb, write_image  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 
 
-def crop_box(image: np.ndarray, width: int, height: int) -> tuple[int, int]:
-    """Top-left corner of a ``width`` x ``height`` window centred on what the image shows (non-black pixels)."""
-    shown = np.nonzero(image.max(-1) > 0.02)
-    full_h, full_w = image.shape[:2]
-    if shown[0].size == 0:
-        return (full_h - height) // 2, (full_w - width) // 2
-    cy, cx = (shown[0].min() + shown[0].max()) // 2, (shown[1].min() + shown[1].max()) // 2
-    return int(np.clip(cy - height // 2, 0, full_h - height)), int(np.clip(cx - width // 2, 0, full_w - width))
-
-
 def style_tile(name: str, height: int, width: int, short_side: int) -> np.ndarray:
-    """The painting at the renders' scale (its shorter side ``short_side`` pixels, as the metrics resample it),
-    centre-cropped to ``width`` x ``height``; letterboxed when it is smaller."""
     generated = {"demo": demo_style_image, "lines": line_drawing_image}
     style = generated[name]() if name in generated else read_rgb(DATA / "styles" / f"{name}.jpg")
-    h, w = style.shape[:2]
-    scale = short_side / min(h, w)
-    style = resize_image(style, max(1, round(w * scale)), max(1, round(h * scale)))
-    if style.shape[0] < height or style.shape[1] < width:
-        return letterbox(style, width, height)
-    top, left = (style.shape[0] - height) // 2, (style.shape[1] - width) // 2
-    return style[top : top + height, left : left + width]
+    return at_scale(style, short_side, width, height)
 
 
 def main() -> int:
@@ -71,9 +53,9 @@ def main() -> int:
             for row in ("unstylized", "colour-transfer", args.row)
         ]
         height, width = images[0].shape[0] // 2, images[0].shape[1] // 2  # the fit size: a 2x crop of the object
-        top, left = crop_box(images[0], width, height)
+        top, left = object_window(images[0], width, height)
         tiles = [image[top : top + height, left : left + width] for image in images]
-        tiles.append(style_tile(style, height, width, images[0].shape[0] // 2 * 2))
+        tiles.append(style_tile(style, height, width, images[0].shape[0]))  # the renders' scale
         gap = np.ones((height, 4, 3), np.float32)
         rows.append(np.concatenate([t for tile in tiles for t in (tile, gap)][:-1], 1))
         rows.append(np.ones((4, rows[-1].shape[1], 3), np.float32))

@@ -326,6 +326,30 @@ def test_letterbox_keeps_the_aspect_and_centres_the_image():
     assert letterbox(np.zeros((1, 1, 3), np.float32), 3, 2).shape == (2, 3, 3)
 
 
+def test_object_window_centres_on_what_the_image_shows_and_stays_inside():
+    from dresg_addon.util.imageio import object_window
+
+    image = np.zeros((40, 60, 3), np.float32)
+    image[10:20, 40:50] = 0.8  # an object right of centre
+    top, left = object_window(image, 20, 16)
+    assert (top, left) == (6, 34)  # centred on the object's box (rows 10-19, columns 40-49)
+    image[:] = 0.0
+    image[0:4, 56:60] = 1.0  # in the corner: the window is pushed back inside
+    assert object_window(image, 20, 16) == (0, 40)
+    assert object_window(np.zeros((40, 60, 3), np.float32), 20, 16) == (12, 20)  # nothing shown: the centre
+
+
+def test_at_scale_resamples_the_shorter_side_and_crops_the_centre():
+    from dresg_addon.util.imageio import at_scale
+
+    painting = np.zeros((100, 200, 3), np.float32)
+    painting[:, 100:] = 1.0  # left half black, right half white
+    tile = at_scale(painting, 50, 40, 30)  # 50 x 100 after resampling, then the central 40 x 30
+    assert tile.shape == (30, 40, 3)
+    assert np.allclose(tile[:, :18], 0.0, atol=0.02) and np.allclose(tile[:, 22:], 1.0, atol=0.02)
+    assert at_scale(painting, 10, 40, 30).shape == (30, 40, 3)  # smaller than the tile: letterboxed
+
+
 def test_a_large_image_reads_reduced_in_bands_and_a_huge_one_is_refused_from_its_header(tmp_path, monkeypatch):
     import dresg_addon.util.imageio as imageio
     from dresg_addon.util.imageio import read_image, read_rgb

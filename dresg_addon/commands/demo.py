@@ -2,9 +2,11 @@
 
 Makes the demo scene, cameras and style image, stylizes the scene, and writes the stylized PLY, the
 per-stage log, before/after images of every camera, and ``before_after.png``: before | colour transfer |
-after | style from four novel views (between the cameras the scene was stylized from). The colour
-transfer column is the baseline a stylization must beat: the paper's post stage alone, one covariance
-colour map from the base renders to the style (:func:`~dresg_addon.method.color_transfer.transfer_scene_colors`).
+after | style from four novel views (between the cameras the scene was stylized from), rendered at twice
+the fit size and cropped to the fit size around the objects, so that the marks can be seen; the style
+is shown at the same scale. The colour transfer column is the baseline a stylization must beat: the
+paper's post stage alone, one covariance colour map from the base renders to the style
+(:func:`~dresg_addon.method.color_transfer.transfer_scene_colors`).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ def run(args) -> int:
     from ..scene.camera_io import write_cameras_json
     from ..scene.demo import demo_cameras, demo_scene, demo_style_image
     from ..scene.io import write_scene
-    from ..util.imageio import letterbox, write_image
+    from ..util.imageio import at_scale, object_window, write_image
 
     out = Path(args.out)
     started = time.perf_counter()
@@ -81,8 +83,11 @@ def run(args) -> int:
     )
     rows = []
     for camera in demo_cameras(scene, n=args.views, azimuth_offset_deg=180.0 / args.views)[:4]:
-        columns = [render_scene(s, camera, settings).rgb.numpy() for s in (scene, transferred, result.scene)]
-        rows.append(np.concatenate([*columns, letterbox(style, camera.width, camera.height)], 1))
+        large = camera.resized(2 * camera.width, 2 * camera.height)
+        columns = [render_scene(s, large, settings).rgb.numpy() for s in (scene, transferred, result.scene)]
+        top, left = object_window(columns[0], camera.width, camera.height)
+        crops = [c[top : top + camera.height, left : left + camera.width] for c in columns]
+        rows.append(np.concatenate([*crops, at_scale(style, large.height, camera.width, camera.height)], 1))
     write_image(out / "before_after.png", np.concatenate(rows, 0))
     print(f"wrote {out / 'stylized.ply'} and {out / 'before_after.png'} in {time.perf_counter() - started:.0f} s")
     return 0

@@ -338,6 +338,29 @@ def letterbox(image: np.ndarray, width: int, height: int, fill: float = 1.0) -> 
     return out
 
 
+def object_window(image: np.ndarray, width: int, height: int) -> tuple[int, int]:
+    """Top-left (row, column) of a ``width`` x ``height`` window centred on what ``image`` [H, W, 3] shows
+    (its non-black pixels' bounding box), kept inside the image; the centre when it shows nothing."""
+    shown = np.nonzero(np.asarray(image).max(-1) > 0.02)
+    full_h, full_w = image.shape[:2]
+    if shown[0].size == 0:
+        return max(0, (full_h - height) // 2), max(0, (full_w - width) // 2)
+    cy, cx = (shown[0].min() + shown[0].max()) // 2, (shown[1].min() + shown[1].max()) // 2
+    return int(np.clip(cy - height // 2, 0, max(0, full_h - height))), int(np.clip(cx - width // 2, 0, max(0, full_w - width)))
+
+
+def at_scale(image: np.ndarray, short_side: int, width: int, height: int) -> np.ndarray:  # -> [height, width, C]
+    """``image`` resampled so that its shorter side is ``short_side`` pixels, then centre-cropped to ``width`` x
+    ``height`` (letterboxed where it is smaller): a painting at the scale of renders it is compared with."""
+    h, w = image.shape[:2]
+    scale = short_side / min(h, w)
+    image = resize_image(image, max(1, round(w * scale)), max(1, round(h * scale)))
+    if image.shape[0] < height or image.shape[1] < width:
+        return letterbox(image, width, height)
+    top, left = (image.shape[0] - height) // 2, (image.shape[1] - width) // 2
+    return image[top : top + height, left : left + width]
+
+
 def to_tensor(image: np.ndarray):  # [H, W, C] or [H, W] -> torch [C, H, W] float32
     """A numpy image as a contiguous torch [C, H, W] float32 tensor (a copy)."""
     import torch
