@@ -11,8 +11,9 @@ Writes ``report.md`` and PNG plots (drawn by :mod:`.plot`) into one folder:
 (b) ``work_precision.png``: the weight-free metrics of :mod:`.metrics` (sliced Wasserstein style
     distances, SSIM and gradient structure to the base render, cross-view consistency) against the
     stylization's wall time, for the presets and for stage counts.
-(c) ``convergence.png``: the fit loss (the residual fitting error, Eq. 16) of every fit step and of
-    every stage against time, from the stylize log and progress reports of one run.
+(c) ``convergence.png``: the fit's error at every fit step (the RMSE after each round of a solved colour
+    fit, the Eq. 16 loss of an Adam step) and each stage's distance to its own targets before and after
+    its fit, against time, from the stylize log and progress reports of one run.
 (d) the stiff and extreme cases of :mod:`.stability`, as a table.
 
 Every measured value behind the plots goes to ``report.json``; :func:`draw_plots` redraws the PNGs from it.
@@ -672,8 +673,8 @@ def convergence_panels(steps: list, log: list[dict]):
     losses = [s[3] for s in steps if math.isfinite(s[3]) and s[3] > 0]
     ylog = bool(losses) and max(losses) > 8 * min(losses)
     steps_panel = Panel(
-        "Fit loss of every fit step", "time since the start of stylize (s)", "fit loss (Eq. 16)", ylog=ylog,
-        note="each stage fits a new target: the loss jumps at stage starts",
+        "Fit error of every fit step", "time since the start of stylize (s)", "RMSE (solve) or Eq. 16 (Adam)",
+        ylog=ylog, note="each stage fits a new target: the error jumps at stage starts",
     )  # fmt: skip
     blue = PALETTE[0]
     ends = []
@@ -697,19 +698,20 @@ def convergence_panels(steps: list, log: list[dict]):
         steps_panel.series.append(
             Series([s[0] for s in post], [s[3] for s in post], "post stage", color=PALETTE[2], marker=None)
         )
-    stages = [e for e in log if e.get("fit_loss_first") is not None]
+    # Each stage's gap to its own targets before the fit and what the fit left of it (RMSE over covered pixels).
+    stages = [e for e in log if e.get("target_gap") is not None]
     stage_panel = Panel(
-        "Residual fitting error per stage", "end of the stage (s)", "fit loss", ylog=ylog,
-        note="first and last fit step of each stage",
+        "Distance to each stage's targets", "end of the stage (s)", "RMSE, covered pixels", ylog=ylog,
+        note="before the stage's fit (target gap) and after it (fit residual)",
     )  # fmt: skip
     stage_panel.series.append(
-        Series([e["seconds"] for e in stages], [e["fit_loss_first"] for e in stages], "first step", marker="s")
+        Series([e["seconds"] for e in stages], [e["target_gap"] for e in stages], "before the fit", marker="s")
     )
     stage_panel.series.append(
         Series(
             [e["seconds"] for e in stages],
-            [e["fit_loss_last"] for e in stages],
-            "last step",
+            [e["fit_residual"] for e in stages],
+            "after the fit",
             marker="o",
             point_labels=[str(e["stage"]) for e in stages] if len(stages) <= 12 else None,
         )
@@ -719,16 +721,18 @@ def convergence_panels(steps: list, log: list[dict]):
 
 def convergence_table(log: list[dict]) -> str:
     lines = [
-        "| stage | t | gamma | energy | fit loss first | fit loss last | stage (s) | elapsed (s) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| stage | t | gamma | energy | target gap | fit residual | optimum | closed | stage (s) | elapsed (s) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for e in log:
         t = e.get("t", "")
         gamma = f"{e['gamma']:.3f}" if isinstance(e.get("gamma"), float) else ""
         energy = f"{e['energy']:.4f}" if isinstance(e.get("energy"), float) else ""
+        closed = f"{100 * e['gap_closed']:.0f}%" if isinstance(e.get("gap_closed"), float) else ""
         lines.append(
-            f"| {e['stage']} | {t} | {gamma} | {energy} | {_fmt(e.get('fit_loss_first'))} "
-            f"| {_fmt(e.get('fit_loss_last'))} | {e.get('stage_seconds', 0.0):.2f} | {e.get('seconds', 0.0):.2f} |"
+            f"| {e['stage']} | {t} | {gamma} | {energy} | {_fmt(e.get('target_gap'))} | {_fmt(e.get('fit_residual'))} "
+            f"| {_fmt(e.get('optimum_residual'))} | {closed} | {e.get('stage_seconds', 0.0):.2f} "
+            f"| {e.get('seconds', 0.0):.2f} |"
         )
     return "\n".join(lines)
 
@@ -829,11 +833,14 @@ def build_report(options: ReportOptions, say: Callable[[str], None] | None = Non
     if chosen is not None:
         convergence = {"label": chosen.label, "style": chosen.style, "steps": chosen.steps, "log": chosen.log}
         lines += [
-            f"The fit loss (L1 + 0.2 DSSIM + 0.01 TV + 0.01 feature, Eq. 16: the residual error of fitting the "
-            f'Gaussians to the stage targets) of run "{chosen.label}" on {chosen.style}, per fit step and per '
-            "stage, against the time since the start of stylize (from its log and progress reports).",
+            f'How far the fit of run "{chosen.label}" on {chosen.style} got: its error after every fit step '
+            "(colour-only runs solve each fit as bounded least squares: the RMSE over all pixels after each "
+            "round; Adam runs: the Eq. 16 loss), and per stage the RMSE over covered pixels between the "
+            "stage's targets and the renders before its fit (target gap) and after it (fit residual), "
+            "with the joint least-squares optimum of those targets and the share of the gap closed, against "
+            "the time since the start of stylize (from its log and progress reports).",
             "",
-            "![fit loss against time](convergence.png)",
+            "![fit error against time](convergence.png)",
             "",
             convergence_table(chosen.log),
             "",

@@ -112,7 +112,7 @@ class SynthSettings:
     pca_sample: int = 4096
     robust_power: float = 0.8  # r of the IRLS aggregation
     irls_iterations: int = 3
-    content_weight: float = 0.3  # w_c of the fusion W = w_c (edge_floor + edge_gain x edge), as the presets
+    content_weight: float = 0.3  # w_c of the fusion W = w_c (edge_floor + edge_gain x edge); runs pass their config's
     edge_floor: float = 0.3
     edge_gain: float = 3.0
     edge_level: int = 2  # pyramid level whose edges set the content weight (outlines, not texture)
