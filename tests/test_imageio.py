@@ -332,7 +332,9 @@ def test_object_window_centres_on_what_the_image_shows_and_stays_inside():
     image = np.zeros((40, 60, 3), np.float32)
     image[10:20, 40:50] = 0.8  # an object right of centre
     top, left = object_window(image, 20, 16)
-    assert (top, left) == (6, 34)  # centred on the object's box (rows 10-19, columns 40-49)
+    assert (top, left) == (6, 34)  # centred on the object (rows 10-19, columns 40-49)
+    image[30:40, 0:10] = 0.05  # faint floaters do not pull the window
+    assert object_window(image, 20, 16) == (6, 34)
     image[:] = 0.0
     image[0:4, 56:60] = 1.0  # in the corner: the window is pushed back inside
     assert object_window(image, 20, 16) == (0, 40)

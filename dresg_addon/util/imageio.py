@@ -339,9 +339,10 @@ def letterbox(image: np.ndarray, width: int, height: int, fill: float = 1.0) -> 
 
 
 def object_window(image: np.ndarray, width: int, height: int) -> tuple[int, int]:
-    """Top-left (row, column) of a ``width`` x ``height`` window centred on what ``image`` [H, W, 3] shows
-    (its non-black pixels' bounding box), kept inside the image; the centre when it shows nothing."""
-    shown = np.nonzero(np.asarray(image).max(-1) > 0.02)
+    """Top-left (row, column) of a ``width`` x ``height`` window centred on what ``image`` [H, W, 3] shows (the
+    box of its pixels brighter than 0.1, so faint floaters do not pull it), kept inside the image; the
+    centre when it shows nothing."""
+    shown = np.nonzero(np.asarray(image).max(-1) > 0.1)
     full_h, full_w = image.shape[:2]
     if shown[0].size == 0:
         return max(0, (full_h - height) // 2), max(0, (full_w - width) // 2)
