@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import resource
 import subprocess
 import sys
 import time
@@ -16,11 +15,11 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from dresg_addon.util.machine import cpu_model, usable_cores  # noqa: E402  (needs the repository on the path)
+from dresg_addon.util.machine import cpu_model, peak_rss_mb, usable_cores  # noqa: E402  (needs the repository on the path)
 
 
 def peak_rss_bytes() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
+    return int(peak_rss_mb() * 2**20)
 
 
 THREAD_SETTINGS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")

@@ -142,7 +142,8 @@ def test_geometry_on_cpu_says_what_it_costs(files, tmp_path, capsys):
 def test_stylize_as_a_module_with_ablation_switches_and_quiet(files, tmp_path):
     out = tmp_path / "switches.ply"
     args = _stylize_args(files, out, "--no-feedback", "--no-pcgrad", "--schedule", "triangle", "--views", "0,2")
-    args += ["--early-stop", "0.5", "--stages", "2"]
+    args += ["--early-stop", "0.5", "--stages", "2", "--guide-weight", "0", "--solve-anchor", "0"]
+    args += ["--solve-tolerance", "0.01", "--robust-power", "1.5", "--color-fit", "solve"]
     args += ["--sh-rest", "keep", "--log", str(tmp_path / "custom.jsonl"), "--quiet"]
     done = subprocess.run(
         [sys.executable, "-m", "dresg_addon", *args], cwd=REPO, capture_output=True, text=True, timeout=300
@@ -191,6 +192,8 @@ def test_select_views_prints_a_table_and_json(files, capsys):
         ({"--proposal": "sd15", "--model": "x", "--proposal-size": "36x28"}, "multiple of 8"),
         ({"--background": "2,0,0"}, "--background"),
         ({"--early-stop": "1.5"}, "early_stop must be in [0, 1)"),
+        ({"--solve-anchor": "-1"}, "solve_anchor must be >= 0"),
+        ({"--robust-power": "3"}, "robust_power must be in (0, 2]"),
         ({"--no-style-keys": None}, "synth backend has none"),
     ],
 )

@@ -166,9 +166,46 @@ def test_non_finite_targets_and_bad_settings_are_refused(small):
     targets[1][3, 0] = float("nan")
     with pytest.raises(NumericalError, match="non-finite"):
         solve_colors(views, targets, torch.zeros(80, 3))
-    for bad in ({"tolerance": 0.0}, {"ridge": -1.0}, {"robust_power": 3.0}, {"max_rounds": 0}):
+    for bad in ({"tolerance": 0.0}, {"ridge": -1.0}, {"robust_power": 3.0}, {"max_rounds": 0}, {"anchor": -1.0}):
         with pytest.raises(ConfigError, match="colour solver"):
             ColorSolveSettings(**bad)
+
+
+def test_an_anchored_solve_reaches_the_dense_proximal_optimum_and_keeps_what_the_views_barely_see(small):
+    """min ||A x - b||^2 + mu e_bar ||x - x0||^2 over the box, against FISTA on the stacked dense problem."""
+    _, views = small
+    rng = np.random.default_rng(9)
+    targets = [torch.from_numpy(rng.uniform(0, 1, (t.shape[0], 3)).astype(np.float32)) for t in views.constants]
+    start = torch.from_numpy(rng.uniform(0, 1, (80, 3)).astype(np.float32))
+    mu = 1.0
+    weight = mu * float(views.energy.mean())
+    matrix = dense(views)
+    rhs = torch.cat([t - b for t, b in zip(targets, views.constants)]).double()
+    stacked = torch.cat([matrix, math.sqrt(weight) * torch.eye(80, dtype=torch.float64)])
+    reference = dense_box_optimum(stacked, torch.cat([rhs, math.sqrt(weight) * start.double()]))
+
+    def anchored(colors):
+        return objective(views, colors, targets) + weight * float((colors.double() - start.double()).square().sum())
+
+    settings = ColorSolveSettings(tolerance=1e-6, max_rounds=40, anchor=mu)
+    result = solve_colors(views, targets, start, settings, optimum=True)
+    assert anchored(result.colors) <= 1.001 * anchored(reference.float())
+    # A splat the views see a twentieth as much as the average one hardly moves; the best-seen ones move most.
+    faint, bright = views.energy < 0.05 * views.energy.mean(), views.energy > 2 * views.energy.mean()
+    assert faint.any() and bright.any()
+    moved = (result.colors - start).abs().sum(1)
+    assert float(moved[faint].max()) < 0.1 < float(moved[bright].mean())
+    # The plain optimum, solved on request, fits the views closer than the anchored fit and as the plain solve.
+    plain = solve_colors(views, targets, start, replace(settings, anchor=0.0))
+    assert result.least_squares is not None and plain.least_squares is plain.colors
+    assert objective(views, result.least_squares, targets) <= objective(views, result.colors, targets)
+    assert objective(views, result.least_squares, targets) == pytest.approx(
+        objective(views, plain.colors, targets), rel=0.01
+    )
+    assert solve_colors(views, targets, start, settings).least_squares is None  # not asked: not solved
+    # Stiff: an anchor a million times the views' weight keeps every colour, finite.
+    held = solve_colors(views, targets, start, replace(settings, anchor=1e6))
+    assert torch.isfinite(held.colors).all() and float((held.colors - start).abs().max()) < 1e-3
 
 
 def test_a_robust_fit_follows_the_views_that_agree(small):

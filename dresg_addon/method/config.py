@@ -59,6 +59,12 @@ class StylizeConfig:
     solve_rounds: int = 6  # projected Newton-CG rounds per solve, at most
     solve_cg_iterations: int = 8  # conjugate-gradient iterations per round
     robust_power: float = 2.0  # r of sum |render - target|^r over the views' pixels: 2 least squares, < 2 robust
+    # mu of the solve's pull toward the colours it starts from (color_solve.py): splats the views barely see
+    # keep their colour instead of showing one view's faint samples from every other angle; 0: none.
+    solve_anchor: float = 0.3
+    # Also solve each stage's targets without anchor or robust weights, to log the joint least-squares optimum
+    # beside the fit (a second solve per stage; the quality bench turns it on).
+    log_optimum: bool = False
     color_lr: float = 0.05
     geometry_lr: float = 1e-3  # mean offsets: x the scene extent (see the module docstring)
     optimize_geometry: bool = True
@@ -105,6 +111,7 @@ class StylizeConfig:
                 "solve_rounds and solve_cg_iterations must be >= 1",
             ),
             (0 < self.robust_power <= 2, "robust_power must be in (0, 2]"),
+            (self.solve_anchor >= 0 and math.isfinite(self.solve_anchor), "solve_anchor must be >= 0"),
             (self.guide_weight >= 0 and math.isfinite(self.guide_weight), "guide_weight must be >= 0"),
             (self.fit_steps >= 0 and self.post_steps >= 0, "fit_steps and post_steps must be >= 0"),
             (self.proposal_width >= 8 and self.proposal_height >= 8, "proposal size must be at least 8x8"),
@@ -159,6 +166,7 @@ class StylizeConfig:
             max_rounds=self.solve_rounds,
             cg_iterations=self.solve_cg_iterations,
             robust_power=self.robust_power,
+            anchor=self.solve_anchor,
         )
 
     def solves_colors(self) -> bool:

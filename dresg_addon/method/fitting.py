@@ -254,12 +254,13 @@ class BoundedColorFit:
     """Eq. 16's squared error over all active views with geometry frozen, solved to its bounded optimum
     (:func:`.color_solve.solve_colors`) instead of a fixed number of gradient steps."""
 
-    def __init__(self, renderer: ViewRenderer, fit: FitState, settings: ColorSolveSettings):
+    def __init__(self, renderer: ViewRenderer, fit: FitState, settings: ColorSolveSettings, optimum: bool = False):
         self.views = renderer.linear_views(SOLVE_MIN_WEIGHT)
-        self.fit, self.settings = fit, settings
+        self.fit, self.settings, self.optimum = fit, settings, optimum
 
     def solve(self, targets: Sequence[torch.Tensor], each_round=None) -> ColorSolveResult:  # V x [3, H, W]
-        result = solve_colors(self.views, targets, self.fit.colors.detach(), self.settings, each_round)
+        """Solve, write the colours into the fit state; ``optimum``: also the plain least-squares optimum."""
+        result = solve_colors(self.views, targets, self.fit.colors.detach(), self.settings, each_round, self.optimum)
         with torch.no_grad():
             self.fit.colors.copy_(result.colors)
         return result

@@ -33,8 +33,9 @@ import torch
 from ..scene.camera import Camera
 from ..scene.gaussians import GaussianScene
 from ..util.errors import CameraError, ConfigError, NumericalError
+from ..util.machine import peak_rss_mb
 from . import views as view_selection
-from .bookkeeping import Progress, RunHooks, RunRecord, StageUpdate, peak_rss_mb, run_id
+from .bookkeeping import Progress, RunHooks, RunRecord, StageUpdate, run_id
 from .color_transfer import covariance_color_transform, coverage_weight
 from .config import StylizeConfig, check_run_settings
 from .fitting import (
@@ -229,7 +230,11 @@ class Stylization:
         mean_params = [state.d_means] if state.d_means is not None else []
         optimizer = make_fit_optimizer([state.colors], geometry_params, settings, mean_params)
         base_renders = [r.clone() for r in self.renderer.all(state)]
-        self.solver = BoundedColorFit(self.renderer, state, config.solve_settings()) if config.solves_colors() else None
+        self.solver = (
+            BoundedColorFit(self.renderer, state, config.solve_settings(), config.log_optimum)
+            if config.solves_colors()
+            else None
+        )
         self.fitter = MultiViewFit(
             self.renderer,
             state,
@@ -339,7 +344,7 @@ class Stylization:
     def _fit(self, targets, stage: int, phase: str, where: str) -> dict:
         """Fit ``targets`` (solve or Adam steps); how much of the gap to them the fit closed, for the log."""
         before = self.work.renders or self.renderer.all(self.state)
-        optimum = None
+        optimum, optimum_seconds = None, 0.0
         if self.solver is not None:
             rounds = self.config.solve_rounds
             values = sum(t.numel() for t in targets)
@@ -356,9 +361,12 @@ class Stylization:
                     f"{error} at {where.rsplit(',', 1)[0]}, so the run stopped{self.record.kept_note()}"
                 ) from None
             self.work.losses = result.objectives
-            if result.least_squares is not result.colors:  # a robust fit: the least-squares optimum differs
+            optimum_seconds = result.optimum_seconds
+            if result.least_squares is not None and result.least_squares is not result.colors:
                 squares = self.renderer.all(replace(self.state, colors=result.least_squares))
                 optimum = fit_residual(squares, targets, self.alphas)
+            elif result.least_squares is not None:  # the fit is the plain least-squares solve
+                optimum = "fit"
             self.hooks.report(stage, rounds, rounds, phase, math.sqrt(result.objectives[-1] / values))
             iterations = result.iterations
         else:
@@ -368,7 +376,7 @@ class Stylization:
         after = self.renderer.all(self.state)
         self.work.renders = after
         gap, left = fit_residual(before, targets, self.alphas), fit_residual(after, targets, self.alphas)
-        if self.solver is not None and optimum is None:
+        if optimum == "fit":
             optimum = left  # the solve's result is the joint least-squares optimum (to its tolerance)
         return {
             "target_gap": gap,
@@ -377,6 +385,7 @@ class Stylization:
             "gap_closed": 1.0 - left / gap if gap > 0 else 1.0,
             "fit_moved": fit_residual(after, before, self.alphas),
             "fit_iterations": iterations,
+            "optimum_seconds": optimum_seconds,
         }
 
     def feed_back(self, stage: Stage) -> None:

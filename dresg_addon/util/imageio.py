@@ -14,7 +14,9 @@ OpenImageIO and torch are imported inside the functions, so importing the packag
 
 from __future__ import annotations
 
+import errno
 import os
+import shutil
 import sys
 import tempfile
 from contextlib import contextmanager
@@ -22,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ImageError, with_path
-from .fileutil import atomic_write_with, irregular_file_problem
+from .errors import ImageError, WriteError, with_path
+from .fileutil import atomic_write_with, irregular_file_problem, write_problem
 
 # extension -> (OpenImageIO format name, allowed bit depths, default bit depth); 32 means float32
 _WRITE_FORMATS = {
@@ -282,16 +284,63 @@ def write_image(
         spec.attribute("compression", "zip")
 
     def write(tmp: str) -> None:
+        if format_name == "jpeg":  # libjpeg ends the process on a failed write instead of reporting it
+            _check_room(path, tmp, 2 * data.nbytes + 65536)
         out = oiio.ImageOutput.create(tmp)
         if out is None:
             raise ImageError(with_path(path, f"cannot create a {format_name} writer ({_one_line(oiio.geterror())})"))
-        try:
-            if not out.open(tmp, spec) or not out.write_image(data):
-                raise ImageError(with_path(path, f"write failed ({_one_line(out.geterror()) or 'unknown error'})"))
-        finally:
-            out.close()
+        # Every step is checked, the close too, and the file is read back: OpenImageIO reports some failed
+        # writes only as a message beside a successful return, and libpng's buffered last bytes not at all.
+        written = out.open(tmp, spec) and out.write_image(data) and not out.has_error
+        problem = "" if written else out.geterror()
+        closed = out.close()
+        if not written or not closed or out.has_error:
+            _raise_write_failure(path, tmp, problem or out.geterror() or "the encoder failed")
+        with _native_stderr():  # a truncated file makes libpng print its own complaint
+            check = oiio.ImageInput.open(tmp)
+            pixels_back = None if check is None else check.read_image()
+        if check is None or pixels_back is None or check.has_error:
+            reason = oiio.geterror() if check is None else check.geterror()
+            if check is not None:
+                check.close()
+            _raise_write_failure(path, tmp, f"the written file does not read back ({_one_line(reason)})")
+        check.close()
 
     atomic_write_with(path, write)
+
+
+def _raise_write_failure(path: Path, tmp: str, problem: str) -> None:
+    """Raise the one-line error for an encoder's failed write, with the system's reason when the file system
+    has one (one more byte cannot be written either: a full disk or the file size limit)."""
+    try:
+        with open(tmp, "ab") as probe:
+            probe.write(b"\0")
+            probe.flush()
+            os.fsync(probe.fileno())
+    except OSError as error:
+        raise write_problem(path, error) from None
+    raise WriteError(with_path(path, f"cannot write: {_one_line(problem)}"))
+
+
+def _check_room(path: Path, tmp: str, needed: int) -> None:
+    """Raise WriteError when a file of up to ``needed`` bytes cannot fit: the disk's free space, and the
+    process's file size limit where the OS has one."""
+    reasons = []
+    try:
+        if shutil.disk_usage(os.path.dirname(tmp) or ".").free < needed:
+            reasons.append(os.strerror(errno.ENOSPC))
+    except OSError:
+        pass
+    try:
+        import resource  # Unix only
+
+        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        if limit != resource.RLIM_INFINITY and limit < needed:
+            reasons.append(os.strerror(errno.EFBIG))
+    except (ImportError, OSError, ValueError):
+        pass
+    if reasons:
+        raise WriteError(with_path(path, f"cannot write: {reasons[0]} (the JPEG needs up to {needed} bytes)"))
 
 
 def resize_image(image, width: int, height: int):
@@ -347,7 +396,9 @@ def object_window(image: np.ndarray, width: int, height: int) -> tuple[int, int]
     if shown[0].size == 0:
         return max(0, (full_h - height) // 2), max(0, (full_w - width) // 2)
     cy, cx = (shown[0].min() + shown[0].max()) // 2, (shown[1].min() + shown[1].max()) // 2
-    return int(np.clip(cy - height // 2, 0, max(0, full_h - height))), int(np.clip(cx - width // 2, 0, max(0, full_w - width)))
+    return int(np.clip(cy - height // 2, 0, max(0, full_h - height))), int(
+        np.clip(cx - width // 2, 0, max(0, full_w - width))
+    )
 
 
 def at_scale(image: np.ndarray, short_side: int, width: int, height: int) -> np.ndarray:  # -> [height, width, C]
