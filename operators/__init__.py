@@ -9,7 +9,7 @@ import bpy
 
 ADDON_PACKAGE = __package__.rpartition(".")[0]  # the extension's root package (bl_ext.REPO.ID when installed)
 
-from . import dependencies, io_ops, job, properties, stylize, views  # noqa: E402 (they import ADDON_PACKAGE)
+from . import dependencies, io_ops, job, properties, stylize, tasks, views  # noqa: E402 (they import ADDON_PACKAGE)
 
 classes = (
     *properties.classes,
@@ -19,7 +19,7 @@ classes = (
     *stylize.classes,
 )
 
-__all__ = ["ADDON_PACKAGE", "classes", "dependencies", "io_ops", "job", "properties", "stylize", "views"]
+__all__ = ["ADDON_PACKAGE", "classes", "dependencies", "io_ops", "job", "properties", "stylize", "tasks", "views"]
 
 
 def register() -> None:

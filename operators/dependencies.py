@@ -10,13 +10,14 @@ import importlib.util
 import os
 import subprocess
 import sys
-import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import bpy
 
+from ..dresg_addon.util.errors import DresgError
 from . import ADDON_PACKAGE
+from .tasks import BackgroundTask, tag_redraw
 
 TORCH_REQUIREMENT = "torch==2.13.0"
 TAIL_LINES = 12  # output lines kept for the panel and for error messages
@@ -61,29 +62,48 @@ def pip_commands(target: Path, requirement: str = TORCH_REQUIREMENT, index_url: 
 
 @dataclass
 class Installer:
-    """Runs commands one after another in a background thread, keeping the last lines of output."""
+    """Runs commands one after another as a :class:`~.tasks.BackgroundTask`, keeping the last lines of output.
+
+    The worker posts each output line; :meth:`poll` (main thread) applies them to ``lines``, ``done`` and
+    ``error``, which the panels read.
+    """
 
     commands: list[list[str]]
     lines: list[str] = field(default_factory=list)
     done: bool = False
     error: str = ""
-    _thread: threading.Thread | None = None
+    _task: BackgroundTask | None = None
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="dresg-install", daemon=True)
-        self._thread.start()
+        self._task = BackgroundTask("dresg-install", self._run)
+        self._task.start()
 
     def wait(self, timeout: float | None = None) -> None:
-        if self._thread is not None:
-            self._thread.join(timeout)
+        """Wait for the commands, then apply their output (main thread)."""
+        if self._task is not None:
+            self._task.join(timeout)
+        self.poll()
+
+    def poll(self) -> bool:
+        """Apply what the worker posted (main thread); True once every command has run or one failed."""
+        events = self._task.events() if self._task is not None else []
+        for kind, payload in events:
+            if kind == "line":
+                self.lines = [*self.lines[-(TAIL_LINES - 1) :], payload]
+            elif kind in ("done", "cancelled", "error"):
+                self.done, self.error = True, payload if kind == "error" else ""
+        if events:
+            tag_redraw()
+        return self.done
 
     @property
     def status(self) -> str:
         return self.lines[-1] if self.lines else "Starting..."
 
-    def _run(self) -> None:
-        try:
-            for command in self.commands:
+    def _run(self, post, cancel) -> None:  # worker thread: no bpy
+        tail: list[str] = []
+        for command in self.commands:
+            try:
                 process = subprocess.Popen(
                     command,
                     stdout=subprocess.PIPE,
@@ -91,17 +111,15 @@ class Installer:
                     text=True,
                     env={**os.environ, "PYTHONNOUSERSITE": "1"},
                 )
-                for line in process.stdout:
-                    if line.strip():
-                        self.lines = [*self.lines[-(TAIL_LINES - 1) :], line.rstrip()]
-                if process.wait() != 0:
-                    tail = " | ".join(self.lines[-3:]) or "no output"
-                    self.error = f"'{' '.join(command[1:4])}' failed (exit code {process.returncode}): {tail}"
-                    return
-        except OSError as error:
-            self.error = f"cannot run {self.commands[0][0]}: {error}"
-        finally:
-            self.done = True
+            except OSError as error:
+                raise DresgError(f"cannot run {command[0]}: {error}") from None
+            for line in process.stdout:
+                if line.strip():
+                    tail = [*tail[-2:], line.rstrip()]
+                    post("line", line.rstrip())
+            if process.wait() != 0:
+                output = " | ".join(tail) or "no output"
+                raise DresgError(f"'{' '.join(command[1:4])}' failed (exit code {process.returncode}): {output}")
 
 
 _installer: Installer | None = None
@@ -145,10 +163,7 @@ class DRESG_OT_install_dependencies(bpy.types.Operator):
     def modal(self, context, event):
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
-        for window in context.window_manager.windows:
-            for area in window.screen.areas:
-                area.tag_redraw()
-        if not _installer.done:
+        if not _installer.poll():
             context.workspace.status_text_set(f"Installing PyTorch: {_installer.status}")
             return {"PASS_THROUGH"}
         context.window_manager.event_timer_remove(self._timer)

@@ -1,24 +1,22 @@
 """A stylization run: the engine in a worker thread, its results applied on Blender's main thread.
 
-The worker never touches bpy. It gets numpy copies taken on the main thread and reports through a
-queue; :meth:`StylizeJob.poll` (called by the modal operator's timer) drains the queue and writes the
-colours of the latest finished stage into the object in one go, so the object always holds one
-consistent stage. Cancelling sets an Event the engine checks between optimizer steps. In background
-mode (``blender -b``, the bpy module) timers do not fire while a script runs, so
-:meth:`StylizeJob.run_blocking` runs the engine on the calling thread and applies results at once.
+A :class:`~.tasks.BackgroundTask`: the worker gets numpy copies taken on the main thread and posts
+progress, messages, finished stages and its result; :meth:`StylizeJob.poll` (called by the modal
+operator's timer) drains them and writes the colours of the latest finished stage into the object in one
+go, so the object always holds one consistent stage. Cancelling sets an Event the engine checks between
+optimizer steps. In background mode (``blender -b``, the bpy module) timers do not fire while a script
+runs, so :meth:`StylizeJob.run_blocking` runs the engine on the calling thread and applies results at once.
 """
 
 import json
 import math
-import queue
-import threading
 import time
-import traceback
 
 import bpy
 
-from ..dresg_addon.util.errors import CancelledError, DresgError
+from ..dresg_addon.util.errors import DresgError
 from .splat_object import is_splat_object, write_colors, write_geometry
+from .tasks import BackgroundTask, tag_redraw
 
 PRINT_INTERVAL = 2.0  # seconds between progress lines in background mode
 
@@ -32,14 +30,6 @@ def format_seconds(seconds: float | None) -> str:
     if seconds < 3600:
         return f"{seconds // 60}m {seconds % 60:02d}s"
     return f"{seconds // 3600}h {seconds % 3600 // 60:02d}m"
-
-
-def tag_redraw() -> None:
-    """Redraw 3D views, sidebars and status bars of every window (nothing to do in background mode)."""
-    for window in bpy.context.window_manager.windows:
-        for area in window.screen.areas:
-            if area.type in {"VIEW_3D", "STATUSBAR", "PROPERTIES", "IMAGE_EDITOR"}:
-                area.tag_redraw()
 
 
 class StylizeJob:
@@ -62,11 +52,9 @@ class StylizeJob:
         self.seconds = 0.0
         self.messages: list[str] = []  # the engine's notes (views chosen, Gaussians optimised...)
         self._inputs = (scene, cameras, style_rgb, views)
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
-        self._cancel = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._task = BackgroundTask("dresg-stylize", self._work)
+        self._cancel = self._task.cancel_event
         self._started = time.monotonic()
-        self._inline = False
         self._last_print = 0.0
         self._last_key = None
 
@@ -91,13 +79,11 @@ class StylizeJob:
         return self._cancel.is_set()
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._work, name="dresg-stylize", daemon=True)
-        self._thread.start()
+        self._task.start()
 
     def run_blocking(self) -> None:
         """Run on this thread, applying each result as it arrives (background mode)."""
-        self._inline = True
-        self._work()
+        self._task.run_blocking(self._apply_events)
 
     def cancel(self) -> None:
         if self.running:
@@ -114,54 +100,41 @@ class StylizeJob:
         return obj is not None and obj.session_uid == self.object_uid
 
     def join(self, timeout: float | None = None) -> None:
-        if self._thread is not None:
-            self._thread.join(timeout)
+        self._task.join(timeout)
 
-    def _work(self) -> None:
+    def _work(self, post, cancel):  # worker thread: no bpy
         from ..dresg_addon.method.loop import stylize
 
         scene, cameras, style_rgb, views = self._inputs
         self._inputs = None  # the snapshot is the worker's now
-        try:
-            result = stylize(
-                scene,
-                cameras,
-                style_rgb,
-                self.config,
-                views=views,
-                progress=lambda progress: self._put("progress", progress),
-                on_stage=lambda update: self._put("stage", update),
-                cancel=self._cancel,
-                messages=lambda message: self._put("message", message),
-            )
-            self._put("done", result)
-        except CancelledError:
-            self._put("cancelled", None)
-        except DresgError as error:
-            self._put("error", str(error))
-        except Exception as error:  # any engine bug must reach the panel, not only the console
-            traceback.print_exc()
-            self._put("error", f"{type(error).__name__}: {error}")
-
-    def _put(self, kind: str, payload) -> None:
-        self._queue.put((kind, payload))
-        if self._inline:
-            self.poll()
+        return stylize(
+            scene,
+            cameras,
+            style_rgb,
+            self.config,
+            views=views,
+            progress=lambda progress: post("progress", progress),
+            on_stage=lambda update: post("stage", update),
+            cancel=cancel,
+            messages=lambda message: post("message", message),
+        )
 
     # -- main thread ---------------------------------------------------------------------------
 
     def poll(self, window_manager=None) -> bool:
-        """Drain the queue and apply what arrived; True once the run has ended."""
+        """Drain what the worker posted and apply it; True once the run has ended."""
         if not self.running:
             return True
         if window_manager is not None and window_manager.is_interface_locked:
             return False  # rendering or another lock: try again on the next tick
+        self._apply_events(self._task.events())
+        return not self.running
+
+    def _apply_events(self, events) -> None:
+        if not self.running:
+            return
         progress = stage = final = None
-        while True:
-            try:
-                kind, payload = self._queue.get_nowait()
-            except queue.Empty:
-                break
+        for kind, payload in events:
             if kind == "progress":
                 progress = payload
             elif kind == "message":
@@ -180,7 +153,6 @@ class StylizeJob:
             self._finish(*final)
         if progress is not None or stage is not None or final is not None:
             tag_redraw()
-        return not self.running
 
     def _object(self):
         obj = bpy.data.objects.get(self.object_name)

@@ -9,6 +9,7 @@ from ..dresg_addon.scene import splat_mesh
 from ..dresg_addon.util.errors import DresgError, ImageError
 from . import ADDON_PACKAGE, job
 from .splat_object import is_splat_object, restore_original, scene_from_object
+from .tasks import tag_redraw
 from .views import active_cameras, fitting_cameras, scene_cameras
 
 IMAGE_KINDS = ("render", "proposal", "target", "residual")
@@ -215,7 +216,7 @@ class DRESG_OT_restore_colors(bpy.types.Operator):
         if job.running_on(obj):  # the run must not write over the restored colours
             job.current().cancel()
         restore_original(obj)
-        job.tag_redraw()
+        tag_redraw()
         self.report({"INFO"}, f"Restored the original colours of {len(obj.data.vertices)} splats")
         return {"FINISHED"}
 

@@ -5,8 +5,6 @@ is respected) by :mod:`dresg_addon.scene.blender_camera`; the render resolution 
 """
 
 import os
-import threading
-import traceback
 
 import bpy
 import numpy as np
@@ -15,8 +13,8 @@ from mathutils import Matrix
 
 from ..dresg_addon.scene import blender_camera
 from ..dresg_addon.util.errors import DresgError
-from .job import tag_redraw
 from .splat_object import is_splat_object, scene_from_object
+from .tasks import BackgroundTask, tag_redraw
 
 ORBIT_COLLECTION = "DReSG Orbit Cameras"
 IMPORTED_COLLECTION = "DReSG Cameras"
@@ -120,7 +118,8 @@ def _splat_poll(cls, context) -> bool:
 
 
 class SelectionJob:
-    """View selection on a worker thread: the splats and cameras are read on the main thread first."""
+    """View selection as a :class:`~.tasks.BackgroundTask`: the splats and cameras are read on the main thread
+    first; the worker posts its progress, and :meth:`poll` (main thread) applies it."""
 
     def __init__(self, splats, cameras, config, camera_names: list[str]) -> None:
         self.camera_names = camera_names
@@ -128,40 +127,48 @@ class SelectionJob:
         self.result = None
         self.error = ""
         self.cancelled = False
-        self.cancel = threading.Event()
         self._inputs = (splats, cameras, config)
-        self._thread = threading.Thread(target=self._work, name="dresg-select-views", daemon=True)
+        self._task = BackgroundTask("dresg-select-views", self._work)
+        self.cancel = self._task.cancel_event
 
     @property
     def done(self) -> bool:
-        return not self._thread.is_alive() and self._inputs is None
+        """The selection ended and :meth:`poll` has applied its outcome."""
+        return self._task.finished
 
     def start(self) -> None:
-        self._thread.start()
+        self._task.start()
 
     def join(self, timeout: float | None = None) -> None:
-        self._thread.join(timeout)
+        """Wait for the worker, then apply what it posted (main thread)."""
+        self._task.join(timeout)
+        self.poll()
 
-    def _progress(self, done: int, total: int) -> None:
-        self.fraction, self.text = done / max(total, 1), f"Rendering visibility {done + 1}/{total}"
-        tag_redraw()
+    def poll(self) -> bool:
+        """Apply what the worker posted (main thread); True once the selection has ended."""
+        events = self._task.events()
+        for kind, payload in events:
+            if kind == "progress":
+                done, total = payload
+                self.fraction, self.text = done / max(total, 1), f"Rendering visibility {done + 1}/{total}"
+            elif kind == "done":
+                self.result = payload
+            elif kind == "cancelled":
+                self.cancelled = True
+            elif kind == "error":
+                self.error = payload
+        if events:
+            tag_redraw()
+        return self.done
 
-    def _work(self) -> None:
+    def _work(self, post, cancel):  # worker thread: no bpy
         from ..dresg_addon.method.views import select_active_views
-        from ..dresg_addon.util.errors import CancelledError
 
         splats, cameras, config = self._inputs
-        try:
-            self.result = select_active_views(splats, cameras, config, progress=self._progress, cancel=self.cancel)
-        except CancelledError:
-            self.cancelled = True
-        except DresgError as error:
-            self.error = str(error)
-        except Exception as error:  # an engine bug must reach the user, not only the console
-            traceback.print_exc()
-            self.error = f"{type(error).__name__}: {error}"
-        finally:
-            self._inputs = None
+        self._inputs = None
+        return select_active_views(
+            splats, cameras, config, progress=lambda done, total: post("progress", (done, total)), cancel=cancel
+        )
 
 
 _selection: SelectionJob | None = None
@@ -232,10 +239,9 @@ class DRESG_OT_select_views(bpy.types.Operator):
         if event.type == "ESC" and event.value == "PRESS":
             _selection.cancel.set()
             return {"RUNNING_MODAL"}
-        if event.type != "TIMER" or not _selection.done:
+        if event.type != "TIMER" or not _selection.poll():
             return {"PASS_THROUGH"}
         context.window_manager.event_timer_remove(self._timer)
-        tag_redraw()
         return self._finish(context, _selection)
 
     def cancel(self, context):  # Blender ended the operator (file loaded, window closed)

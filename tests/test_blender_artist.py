@@ -1,6 +1,10 @@
 """What an artist meets in Blender (issue 10): words, camera import and clipping, Max Views, the fit
-resolution, the y-up conversion and a Stylize button that says why it is grey. bpy module, no stylization."""
+resolution, the y-up conversion, a Stylize button that says why it is grey, and background jobs that leave bpy to
+the main thread (issue 18). bpy module."""
 
+import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -204,3 +208,65 @@ def test_view_selection_runs_on_a_worker_thread_and_cancels(addon, tmp_path):
     stopped.join(120)
     assert stopped.done and stopped.cancelled and stopped.result is None
     assert views.current_selection() is None
+
+
+class _MainThreadOnly:
+    """bpy as it must be treated: any use off Blender's main thread fails instead of crashing Blender later."""
+
+    def __init__(self, module) -> None:
+        self._module = module
+
+    def __getattr__(self, name: str):
+        if threading.current_thread() is not threading.main_thread():
+            raise RuntimeError(f"bpy.{name} used off the main thread")
+        return getattr(self._module, name)
+
+
+def test_every_background_job_leaves_bpy_to_the_main_thread(addon, tmp_path, monkeypatch):
+    """View selection, a stylization and the dependency installer run on workers with bpy made to fail off the
+    main thread: each finishes, and its progress and results reach the main thread through its queue."""
+    pytest.importorskip("torch")
+    ops = addon.operators
+    obj = _import(tmp_path, _scene())
+    bpy.ops.dresg.add_orbit_cameras(count=4)
+    scene = bpy.context.scene
+    objects = ops.views.scene_cameras(scene)
+    cameras = ops.views.fitting_cameras(scene, obj, objects)
+    splats = ops.splat_object.scene_from_object(obj)
+    for module in (ops.tasks, ops.job, ops.views, ops.dependencies, ops.splat_object, ops.stylize):
+        monkeypatch.setattr(module, "bpy", _MainThreadOnly(bpy))
+    with pytest.raises(RuntimeError, match="off Blender's main thread"):  # the guard is real
+        failures = []
+        worker = threading.Thread(target=lambda: _catch(ops.tasks.tag_redraw, failures))
+        worker.start()
+        worker.join()
+        raise failures[0]
+
+    selection = ops.views.SelectionJob(splats, cameras, scene.dresg.config(), [o.name for o in objects])
+    selection.start()
+    selection.join(120)
+    assert selection.done and not selection.error and selection.result.indices
+    assert selection.fraction == pytest.approx(3 / 4)
+
+    config = addon.dresg_addon.method.config.preset("preview", stages=2, proposal_width=32, proposal_height=24)
+    small = addon.dresg_addon.scene.orbit.orbit_cameras(splats, 2, width=32, height=24)
+    style = np.random.default_rng(1).uniform(size=(24, 32, 3)).astype(np.float32)
+    run = ops.job.StylizeJob(obj, splats, small, style, config)
+    run.start()
+    deadline = time.monotonic() + 120
+    while not run.poll() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert run.state == "DONE", run.error
+    assert run.stages_applied >= 1 and run.messages and run.fraction == 1.0
+
+    installer = ops.dependencies.Installer([[sys.executable, "-c", "print('Collecting torch')"]])
+    installer.start()
+    installer.wait(30)
+    assert installer.done and not installer.error and installer.lines == ["Collecting torch"]
+
+
+def _catch(function, failures: list) -> None:
+    try:
+        function()
+    except Exception as error:
+        failures.append(error)

@@ -1,5 +1,6 @@
 """Import / export / restore / preview of splat objects, with the real bpy module (headless)."""
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -315,3 +316,47 @@ def test_orbit_cameras_respect_the_object_transform(addon, shared_data):
     bpy.context.view_layer.update()
     for got, want in zip(engine_cameras(scene, obj, cameras), from_blender):
         np.testing.assert_allclose(got.world_to_camera, want.world_to_camera, atol=1e-4)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="RLIMIT_FSIZE stands in for a full disk on Unix")
+def test_export_onto_a_full_disk_reports_one_line_and_changes_nothing(addon, tmp_path):
+    """Issue 19: a full disk (a file size limit here) is an error report naming the file and the reason; the
+    file that was there stays, and the object's colours are untouched."""
+    import resource
+    import signal
+
+    from stylize_gaussians.operators.splat_object import scene_from_object
+
+    source = tmp_path / "source.ply"
+    write_scene(_small_scene(), source)
+    obj = import_splats(source)
+    before = scene_from_object(obj)
+    out = tmp_path / "out.ply"
+    out.write_bytes(b"an older export")
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (1024, hard))
+    try:
+        with pytest.raises(RuntimeError) as raised:
+            bpy.ops.dresg.export_splats(filepath=str(out))
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, handler)
+    message = str(raised.value).strip().splitlines()
+    assert message == [f"Error: {out}: cannot write: File too large"], message
+    assert out.read_bytes() == b"an older export" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "out.ply",
+        "source.ply",
+    ]
+    np.testing.assert_array_equal(scene_from_object(obj).sh_dc, before.sh_dc)
+
+
+def _small_scene(n: int = 200) -> GaussianScene:
+    rng = np.random.default_rng(5)
+    return GaussianScene(
+        means=rng.normal(size=(n, 3)).astype(np.float32),
+        log_scales=rng.normal(-3, 0.5, size=(n, 3)).astype(np.float32),
+        quats=rng.normal(size=(n, 4)).astype(np.float32),
+        opacity_logits=rng.normal(size=n).astype(np.float32),
+        sh_dc=rng.normal(size=(n, 3)).astype(np.float32),
+    )

@@ -162,3 +162,70 @@ def test_the_cli_says_one_line_and_exits_2_on_mutated_scenes(seeds, kind, tmp_pa
             assert len(lines) == 1 and lines[0].startswith("error: "), (case, lines)
         else:
             assert all(line.startswith("note: ") for line in lines), (case, lines)
+
+
+FULL_DISK_CASES = """
+import hashlib, json, os, resource, signal, sys
+import numpy as np
+from pathlib import Path
+from dresg_addon.scene.io import read_scene, write_scene
+from dresg_addon.util.errors import WriteError
+from dresg_addon.util.imageio import write_image
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+seeds, out = Path(sys.argv[1]), Path(sys.argv[2])
+scene = read_scene(seeds / "scene.ply")
+image = np.random.default_rng(3).uniform(size=(48, 64, 3)).astype(np.float32)
+rng = np.random.default_rng(int(sys.argv[3]))
+hard = resource.getrlimit(resource.RLIMIT_FSIZE)[1]
+outcomes = []
+for case in range(48):
+    name = ["a.ply", "a.splat", "a.compressed.ply", "a.png", "a.exr", "a.tif", "a.jpg"][case % 7]
+    target = out / name
+    target.write_bytes(b"old " + bytes([case]))
+    limit = int(rng.integers(0, 200000))
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
+    try:
+        if name[-3:] in ("png", "exr", "tif", "jpg"):
+            write_image(target, image)
+        else:
+            write_scene(scene, target)
+        outcome = "written"
+    except WriteError as error:
+        outcome = "refused: " + str(error)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (hard, hard))
+    left = sorted(p.name for p in out.iterdir())
+    outcomes.append({"case": case, "limit": limit, "name": name, "outcome": outcome, "left": left,
+                     "old": target.read_bytes() == b"old " + bytes([case]), "size": target.stat().st_size})
+    target.unlink()
+print(json.dumps(outcomes))
+"""
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="RLIMIT_FSIZE stands in for a full disk on Unix")
+def test_writes_at_random_size_limits_complete_or_fail_cleanly(seeds, tmp_path):
+    """Issue 19: every scene and image format, written under random file size limits (a disk that fills at a
+    random point): either the whole file lands, or one WriteError names the path and the reason, the old
+    file stays as it was and no temporary file is left."""
+    import json
+    import subprocess
+
+    done = subprocess.run(
+        [sys.executable, "-c", FULL_DISK_CASES, str(seeds["ply"].parent), str(tmp_path), str(SEED)],
+        cwd=Path(__file__).resolve().parents[1],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    outcomes = json.loads(done.stdout)
+    for case in outcomes:
+        assert case["left"] == [case["name"]], case  # no temporary file beside it
+        if case["outcome"] == "written":
+            assert not case["old"] and case["size"] <= case["limit"], case
+        else:
+            assert case["old"], case
+            assert case["outcome"].startswith(f"refused: {tmp_path / case['name']}: cannot write: "), case
+            assert "\n" not in case["outcome"]
+    kinds = {c["outcome"] == "written" for c in outcomes}
+    assert kinds == {True, False}  # the limits cover both

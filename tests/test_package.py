@@ -137,3 +137,52 @@ def test_version_is_one_number_for_the_cli_and_the_extension(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["--version"])
     assert exit_info.value.code == 0 and capsys.readouterr().out.strip() == f"python -m dresg_addon {__version__}"
+
+
+UNIX_ONLY = ("resource", "fcntl", "termios", "pwd", "grp", "posix")  # modules Windows' Python does not have
+
+
+def test_the_engine_and_the_add_on_import_no_unix_only_module_at_load():
+    """Blender runs on Windows too: nothing the extension loads may import a Unix-only module at import time,
+    and the manifest declares the platforms (Blender's names) it installs on."""
+    import ast
+    import tomllib
+
+    manifest = tomllib.loads((REPO / "blender_manifest.toml").read_text())
+    assert set(manifest["platforms"]) == {"linux-x64", "windows-x64", "macos-arm64", "macos-x64"}
+
+    for path in [*ENGINE.rglob("*.py"), *(REPO / "operators").rglob("*.py"), *(REPO / "ui").rglob("*.py")]:
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:  # module level only: guarded uses are inside
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            names += [node.module] if isinstance(node, ast.ImportFrom) and node.module else []
+            assert not {n.split(".")[0] for n in names} & set(UNIX_ONLY), f"{path.relative_to(REPO)} imports {names}"
+
+
+def test_without_unix_only_modules_the_engine_runs_and_measures_memory():
+    """With the Unix-only modules missing (as on Windows), every engine module imports, a run's memory and
+    process bookkeeping still work."""
+    code = f"""
+import sys
+for name in {UNIX_ONLY[:-1]!r}:  # posix stays: the standard library itself runs on it here
+    sys.modules[name] = None  # import fails, as where the module does not exist
+import importlib, pkgutil, dresg_addon
+for info in pkgutil.walk_packages(dresg_addon.__path__, "dresg_addon."):
+    if not info.name.endswith("__main__"):
+        importlib.import_module(info.name)
+from dresg_addon.util.machine import peak_rss_mb, process_alive
+import os
+assert peak_rss_mb() > 0 and process_alive(os.getpid())
+print("ok")
+"""
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr
+
+
+def test_a_finished_process_is_not_alive():
+    from dresg_addon.util.machine import process_alive
+
+    child = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    assert not process_alive(int(child.stdout))
+    import os
+
+    assert process_alive(os.getpid())

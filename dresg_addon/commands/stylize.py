@@ -8,8 +8,8 @@ import time
 from dataclasses import fields
 from pathlib import Path
 
-from ..method.config import DEFAULT_PRESET, PRESETS, PROPOSALS, SCHEDULES, SH_REST_MODES, preset
-from ..util.errors import ConfigError
+from ..method.config import COLOR_FITS, DEFAULT_PRESET, PRESETS, PROPOSALS, SCHEDULES, SH_REST_MODES, preset
+from ..util.errors import ConfigError, WriteError
 from ._common import add_scene_and_cameras, load_scene_and_cameras, parse_background
 
 NAME = "stylize"
@@ -23,6 +23,25 @@ KNOBS = (
     ("--post-steps", "post_steps", int, "fitting steps after the final colour transfer (0: no post stage)"),
     ("--content-weight", "content_weight", float, "w_c: how much of the scene's structure the proposals keep"),
     ("--latent-lr", "latent_lr", float, "Adam learning rate of the latent updates"),
+    (
+        "--guide-weight",
+        "guide_weight",
+        float,
+        "how strongly a view keeps the strokes earlier views placed (synth; 0: off)",
+    ),
+    (
+        "--solve-tolerance",
+        "solve_tolerance",
+        float,
+        "colour solve: stop when a round lowers the objective by less than this fraction",
+    ),
+    (
+        "--solve-anchor",
+        "solve_anchor",
+        float,
+        "colour solve: pull toward the colours before each fit (0: plain least squares)",
+    ),
+    ("--robust-power", "robust_power", float, "colour solve: r of sum |render - target|^r (2: least squares)"),
     ("--color-lr", "color_lr", float, "Adam learning rate of the colours"),
     ("--geometry-lr", "geometry_lr", float, "Adam learning rate of the geometry offsets (means: x scene extent)"),
     ("--scene-extent", "scene_extent", float, "length the mean offsets' lr and bound scale with (0: measured)"),
@@ -68,6 +87,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dino", metavar="PATH", help="local DINO weights for the fit loss's feature term")
     parser.add_argument("--schedule", choices=SCHEDULES, help="residual-strength schedule")
     parser.add_argument(
+        "--color-fit",
+        choices=COLOR_FITS,
+        help="solve (default): the colour fit solved as bounded least squares over all views; adam: Adam steps",
+    )
+    parser.add_argument(
         "--sh-rest", choices=SH_REST_MODES, help="zero (default): drop view-dependent SH bands; keep: keep them"
     )
     parser.add_argument("--proposal-size", metavar="WxH", help="proposal resolution (default 448x320)")
@@ -107,6 +131,7 @@ def config_from_args(args):
         ("model", "model_path"),
         ("dino", "dino_path"),
         ("schedule", "schedule"),
+        ("color_fit", "color_fit"),
         ("sh_rest", "sh_rest"),
     ):
         if getattr(args, name):
@@ -126,10 +151,30 @@ def config_from_args(args):
     return preset(args.preset, **overrides)
 
 
+def room_needed(scene, cameras, config, out: Path, log_path: Path, checkpoint_dir: Path, views_dir) -> dict[Path, int]:
+    """What a run writes, by folder, at most: the stylized scene, the checkpoint (parameters, Adam's two
+    moments, each view's state), the log, and with ``views_dir`` four 8-bit images per view and stage."""
+    from ..scene.io import encoded_size
+
+    views = min(len(cameras), config.max_views or len(cameras))
+    pixels = config.proposal_width * config.proposal_height
+    per_splat = 3 + (10 if config.optimize_geometry else 0)  # colours, and mean, scale and rotation offsets
+    needs: dict[Path, int] = {}
+    for folder, size in (
+        (out.parent, encoded_size(scene, out)),
+        (checkpoint_dir, 3 * 4 * per_splat * len(scene) + 4 * 3 * pixels * views + 2**20),
+        (log_path.parent, 2**20),
+        *([(Path(views_dir), 4 * 3 * pixels * views * (config.stages + 1))] if views_dir else []),
+    ):
+        needs[folder] = needs.get(folder, 0) + size
+    return needs
+
+
 def run(args) -> int:
     from ..method.config import check_run_settings
     from ..method.loop import stylize
     from ..scene.io import write_scene
+    from ..util.fileutil import check_room
     from ..util.imageio import STYLE_MAX_SIDE, read_rgb
 
     config = config_from_args(args)
@@ -145,6 +190,8 @@ def run(args) -> int:
     out = Path(args.out)
     log_path = Path(args.log) if args.log else out.with_suffix(".log.jsonl")
     checkpoint_dir = Path(args.checkpoint_dir) if args.checkpoint_dir else out.with_suffix(".checkpoint")
+    # A long run must not lose its work to an output problem found at its end.
+    check_room(room_needed(scene, cameras, config, out, log_path, checkpoint_dir, args.save_views))
     if not args.quiet and (config.proposal == "sd15" or config.optimize_geometry):
         import torch
 
@@ -197,7 +244,10 @@ def run(args) -> int:
         save_views_dir=args.save_views,
         messages=messages,
     )
-    write_scene(result.scene, out)
+    try:
+        write_scene(result.scene, out)
+    except WriteError as error:  # the stages are in the checkpoint: a rerun resumes after the last one
+        raise WriteError(f"{error}; {checkpoint_dir} keeps the run, so the same command resumes it") from None
     print(
         f"wrote {out} ({len(result.scene)} splats, {len(result.selection.indices)} active views, {time.perf_counter() - started:.1f} s); log {log_path}"
     )

@@ -32,7 +32,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import resource
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,6 +51,7 @@ from ..method.style_distance import (
 from ..scene.camera import Camera
 from ..scene.warp import DEPTH_TOLERANCE, warp_to
 from ..util.errors import ConfigError, with_path
+from ..util.machine import peak_rss_mb
 
 GRADIENT_FLOOR = 1e-3  # the gradient magnitude (per pixel, [0, 1] images) below which an image is flat
 LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709
@@ -353,20 +353,6 @@ def _reset_peak_rss() -> bool:
         return True
     except OSError:
         return False
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process in MB (since the last reset where supported)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    # ru_maxrss is in kB on Linux, bytes on macOS.
-    scale = 1024.0 * 1024.0 if os.uname().sysname == "Darwin" else 1024.0
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / scale
 
 
 @dataclass

@@ -9,9 +9,9 @@ cancel event, messages); :class:`RunRecord` the files (checkpoint, log, stage im
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
-import resource
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -23,8 +23,8 @@ import torch
 
 from ..scene.camera import Camera
 from ..scene.gaussians import GaussianScene
-from ..util.errors import CancelledError
-from ..util.fileutil import atomic_write_bytes, atomic_write_with
+from ..util.errors import CancelledError, WriteError
+from ..util.fileutil import append_text, atomic_write_bytes
 
 
 @dataclass
@@ -49,10 +49,6 @@ class StageUpdate:
     log_scales: np.ndarray | None
     quats: np.ndarray | None
     images: dict[str, dict[str, np.ndarray]]  # view name -> render / proposal / target / residual [H, W, 3]
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 class RunHooks:
@@ -159,8 +155,7 @@ class RunRecord:
     def append(self, entry: dict) -> None:
         self.entries.append(entry)
         if self.log_file is not None:
-            with open(self.log_file, "a") as handle:
-                handle.write(json.dumps(entry) + "\n")
+            append_text(self.log_file, json.dumps(entry) + "\n")
 
     def save_checkpoint(self, stage: int, params, optimizer, states) -> None:
         if self.checkpoint is None:
@@ -173,7 +168,14 @@ class RunRecord:
             "states": [s.detach().clone() for s in states],
             "log": self.entries,
         }
-        atomic_write_with(self.checkpoint, lambda tmp: torch.save(payload, tmp))
+        # Serialized in memory first: torch.save onto a full disk fails deep in its zip writer with no
+        # system reason, and the atomic write then reports the disk's own.
+        buffer = io.BytesIO()
+        torch.save(payload, buffer)
+        try:
+            atomic_write_bytes(self.checkpoint, buffer.getbuffer())
+        except WriteError as error:
+            raise WriteError(f"{error}, so the run stopped{self.kept_note()}") from None
         self.last_saved = stage
 
     def kept_note(self) -> str:
@@ -191,7 +193,10 @@ class RunRecord:
             safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
             for kind, image in kinds.items():
                 path = Path(self.views_dir) / f"stage{stage:02d}" / f"{safe}_{kind}.png"
-                write_image(path, np.ascontiguousarray(image))
+                try:
+                    write_image(path, np.ascontiguousarray(image))
+                except WriteError as error:
+                    raise WriteError(f"{error}, so the run stopped{self.kept_note()}") from None
 
 
 def _load_checkpoint(path: Path) -> dict | None:

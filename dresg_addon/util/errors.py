@@ -35,6 +35,10 @@ class ModelError(DresgError):
     """Model weights (SD1.5, DINO, CLIP) are missing or do not match the expected layout."""
 
 
+class WriteError(DresgError):
+    """A file cannot be written (disk full, file too large, no permission); the file that was there is kept."""
+
+
 class CancelledError(DresgError):
     """The user cancelled a run."""
 

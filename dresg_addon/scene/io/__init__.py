@@ -182,6 +182,17 @@ def write_scene(scene: GaussianScene, path: str | os.PathLike) -> SceneFormat:
     The bytes are built in memory first and land atomically (temporary file, then rename), so a
     failed write leaves any previous file untouched. Scenes with non-finite values are refused.
     """
+    fmt, parts = _encode(scene, path)
+    atomic_write_with(path, lambda tmp: _write_parts(tmp, parts))  # WriteError with the system's reason
+    return fmt
+
+
+def encoded_size(scene: GaussianScene, path: str | os.PathLike) -> int:
+    """The bytes :func:`write_scene` would write for ``scene`` at ``path`` (its format), without writing."""
+    return sum(len(part) for part in _encode(scene, path)[1])
+
+
+def _encode(scene: GaussianScene, path) -> tuple[SceneFormat, list[bytes | memoryview]]:
     fmt = output_format(path)
     invalid = int(scene.invalid_mask().sum())
     if invalid:
@@ -190,16 +201,10 @@ def write_scene(scene: GaussianScene, path: str | os.PathLike) -> SceneFormat:
         raise SceneFormatError(with_path(path, "refusing to write a scene with no splats"))
     with np.errstate(all="ignore"):  # out-of-range values are clipped by each encoder
         if fmt is SceneFormat.GRAPHDECO_PLY:
-            parts = encode_graphdeco(scene, path)
-        elif fmt is SceneFormat.SPLAT:
-            parts = encode_splat(scene)
-        else:
-            parts = encode_compressed(scene)
-    try:
-        atomic_write_with(path, lambda tmp: _write_parts(tmp, parts))
-    except OSError as error:
-        raise SceneFormatError(with_path(path, f"cannot write: {error.strerror or error}")) from None
-    return fmt
+            return fmt, encode_graphdeco(scene, path)
+        if fmt is SceneFormat.SPLAT:
+            return fmt, encode_splat(scene)
+        return fmt, encode_compressed(scene)
 
 
 def _write_parts(path: str, parts: list[bytes | memoryview]) -> None:
