@@ -214,11 +214,29 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
 classes = (DRESG_PG_view, DRESG_PG_settings)
 
 
+def _strength_changed(obj, _context) -> None:
+    from .splat_object import apply_strength, is_splat_object
+
+    if is_splat_object(obj):
+        apply_strength(obj)
+
+
 def attach() -> None:
     bpy.types.Scene.dresg = PointerProperty(type=DRESG_PG_settings)
     bpy.types.Object.dresg_view = PointerProperty(type=DRESG_PG_view)
+    bpy.types.Object.dresg_strength = FloatProperty(
+        name="Strength",
+        description="How far the splats' colours go from their own (0) to the stylized ones (1): shown live, "
+        "rendered and exported, without running again",
+        min=0.0,
+        max=1.0,
+        default=1.0,
+        subtype="FACTOR",
+        update=_strength_changed,
+    )
 
 
 def detach() -> None:
+    del bpy.types.Object.dresg_strength
     del bpy.types.Object.dresg_view
     del bpy.types.Scene.dresg

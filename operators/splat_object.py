@@ -11,6 +11,8 @@ node trees. Object custom properties:
 ``dresg_extras``            ``{name: numpy dtype}`` of extra per-splat file properties
 ``dresg_sh_rest``           ``"zero"`` once a stylization dropped view-dependent colour, else ``"keep"``
 ``dresg_stylize_settings``  JSON of the last stylization's settings (absent when not stylized)
+``dresg_strength``          (an RNA property) how far the shown and exported colours go from the
+                            originals (0) to the stylized ones (1)
 ==========================  ===========================================================
 """
 
@@ -22,7 +24,7 @@ import numpy as np
 from mathutils import Matrix
 
 from ..dresg_addon.scene import splat_mesh as sm
-from ..dresg_addon.scene.gaussians import GaussianScene
+from ..dresg_addon.scene.gaussians import GaussianScene, blend_coefficients
 from ..dresg_addon.util.errors import SceneFormatError
 
 NODE_GROUP = "DReSG Gaussian Splats"
@@ -137,12 +139,20 @@ def create_splat_object(
 def scene_from_object(obj) -> GaussianScene:
     """The scene an imported (and possibly stylized) splat object holds, in the file's frame."""
     mesh = obj.data
-    return sm.scene_from_attributes(
-        read_positions(mesh),
-        lambda name: read_attribute(mesh, name),
-        extras=dict(obj.get("dresg_extras", {})),
-        zero_sh_rest=obj.get("dresg_sh_rest") == "zero",
+    scene = sm.scene_from_attributes(
+        read_positions(mesh), lambda name: read_attribute(mesh, name), extras=dict(obj.get("dresg_extras", {}))
     )
+    if obj.get("dresg_sh_rest") == "zero" and scene.sh_rest is not None:  # blended toward none by the strength
+        scene.sh_rest = blend_coefficients(scene.sh_rest, np.zeros_like(scene.sh_rest), strength(obj))
+    return scene
+
+
+def strength(obj) -> float:
+    return float(getattr(obj, "dresg_strength", 1.0))
+
+
+def has_stylized_colors(obj) -> bool:
+    return obj.data.attributes.get(sm.SH_DC_STYLIZED) is not None
 
 
 def _check_count(obj, n: int) -> None:
@@ -154,10 +164,22 @@ def _check_count(obj, n: int) -> None:
 
 
 def write_colors(obj, sh_dc: np.ndarray) -> None:  # sh_dc: [N, 3]
-    """Write stylized DC colours: the raw coefficients and the display colour."""
+    """Write stylized DC colours: kept as they are, and shown (and exported) at the object's strength."""
     mesh = obj.data
     _check_count(obj, sh_dc.shape[0])
-    write_attributes(mesh, sm.color_attributes(sh_dc, read_attribute(mesh, sm.OPACITY)))
+    write_attributes(mesh, [sm.PointAttribute(sm.SH_DC_STYLIZED, "FLOAT_VECTOR", np.asarray(sh_dc, np.float32))])
+    apply_strength(obj)
+
+
+def apply_strength(obj) -> None:
+    """Show the colours ``dresg_strength`` of the way from the originals to the stylized ones (nothing to do
+    before a stylization)."""
+    mesh = obj.data
+    stylized = read_attribute(mesh, sm.SH_DC_STYLIZED)
+    if stylized is None:
+        return
+    shown = blend_coefficients(read_attribute(mesh, sm.SH_DC_ORIGINAL), stylized, strength(obj))
+    write_attributes(mesh, sm.color_attributes(shown, read_attribute(mesh, sm.OPACITY)))
     mesh.update()
 
 
@@ -186,6 +208,8 @@ def restore_original(obj) -> None:
     write_attributes(
         mesh, sm.color_attributes(read_attribute(mesh, sm.SH_DC_ORIGINAL), read_attribute(mesh, sm.OPACITY))
     )
+    if has_stylized_colors(obj):
+        mesh.attributes.remove(mesh.attributes[sm.SH_DC_STYLIZED])
     means = read_attribute(mesh, sm.MEANS_ORIGINAL)
     if means is not None:
         write_positions(mesh, means)

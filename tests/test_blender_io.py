@@ -360,3 +360,45 @@ def _small_scene(n: int = 200) -> GaussianScene:
         opacity_logits=rng.normal(size=n).astype(np.float32),
         sh_dc=rng.normal(size=(n, 3)).astype(np.float32),
     )
+
+
+def test_strength_blends_shown_and_exported_colours_and_survives_save_and_reload(addon, tmp_path):
+    """Issue 18: the stylized colours are kept in their own attribute; Strength blends them with the originals
+    live (the display colour), in the export, and after the .blend is saved and opened again."""
+    from stylize_gaussians.dresg_addon.scene.gaussians import blend_coefficients
+    from stylize_gaussians.operators.splat_object import has_stylized_colors, scene_from_object, write_colors
+
+    source = tmp_path / "source.ply"
+    scene = _small_scene()
+    write_scene(scene, source)
+    obj = import_splats(source)
+    assert not has_stylized_colors(obj)
+    stylized = np.random.default_rng(6).normal(size=scene.sh_dc.shape).astype(np.float32)
+    write_colors(obj, stylized)
+    opacity = attribute(obj, sm.OPACITY)
+    np.testing.assert_array_equal(attribute(obj, sm.SH_DC), stylized)  # strength 1 by default
+
+    obj.dresg_strength = 0.25  # the slider: its update writes the shown colours at once
+    blended = blend_coefficients(scene.sh_dc, stylized, 0.25)
+    np.testing.assert_array_equal(attribute(obj, sm.SH_DC), blended)
+    np.testing.assert_allclose(attribute(obj, sm.COLOR), sm.display_colors(blended, opacity), atol=1e-6)
+    out = tmp_path / "quarter.ply"
+    assert bpy.ops.dresg.export_splats(filepath=str(out)) == {"FINISHED"}
+    np.testing.assert_array_equal(read_scene(out).sh_dc, blended)
+    obj.dresg_strength = 0.0
+    np.testing.assert_array_equal(attribute(obj, sm.SH_DC), scene.sh_dc)
+
+    obj.dresg_strength = 0.5
+    name, saved = obj.name, tmp_path / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(saved))
+    bpy.ops.wm.open_mainfile(filepath=str(saved))
+    obj = bpy.data.objects[name]
+    assert obj.dresg_strength == 0.5 and has_stylized_colors(obj)
+    np.testing.assert_array_equal(attribute(obj, sm.SH_DC_STYLIZED), stylized)
+    np.testing.assert_array_equal(attribute(obj, sm.SH_DC), blend_coefficients(scene.sh_dc, stylized, 0.5))
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.dresg.restore_colors() == {"FINISHED"}
+    np.testing.assert_array_equal(scene_from_object(obj).sh_dc, scene.sh_dc)
+    assert not has_stylized_colors(obj)
+    obj.dresg_strength = 1.0  # nothing stylized: the slider changes nothing
+    np.testing.assert_array_equal(attribute(obj, sm.SH_DC), scene.sh_dc)

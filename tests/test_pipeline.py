@@ -798,3 +798,24 @@ def test_synth_stylization_is_as_consistent_across_novel_views_as_a_colour_trans
     ours, theirs = measure(stylized), measure(baseline)
     assert ours[0] <= 1.2 * theirs[0], (ours, theirs)
     assert ours[1] < theirs[1], (ours, theirs)
+
+
+def test_strength_blends_the_result_with_the_scene_it_came_from():
+    """stylize(strength=s): the colours (DC and SH bands) s of the way from the input's to the stylized ones,
+    exactly the input at 0; the geometry is the run's; a strength outside [0, 1] is refused before any work."""
+    from dresg_addon.scene.gaussians import blend_colors
+
+    scene = sphere_scene(sh_degree=1)
+    config = TINY.with_(sh_rest="zero")
+    full, half, none = (run(scene, config=config, strength=s).scene for s in (1.0, 0.5, 0.0))
+    np.testing.assert_array_equal(none.sh_dc, scene.sh_dc)
+    np.testing.assert_allclose(half.sh_dc, 0.5 * (scene.sh_dc + full.sh_dc), atol=1e-6)
+    np.testing.assert_allclose(half.sh_rest, 0.5 * scene.sh_rest, atol=1e-7)  # the stylized bands are zero
+    np.testing.assert_array_equal(half.means, full.means)
+    for bad in (1.5, -0.1, float("nan")):
+        with pytest.raises(ConfigError, match="strength must be in"):
+            run(scene, config=config, strength=bad)
+    no_bands = replace(scene, sh_rest=None)
+    assert blend_colors(no_bands, no_bands, 0.3).sh_rest is None
+    with pytest.raises(ValueError, match="cannot blend"):
+        blend_colors(scene, sphere_scene(n=10), 0.5)

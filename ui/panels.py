@@ -13,6 +13,7 @@ from ..operators.splat_object import (
     INPUT_SHAPE,
     INPUT_SOFT,
     INPUT_SOLID,
+    has_stylized_colors,
     is_splat_object,
     splat_modifier,
 )
@@ -111,6 +112,8 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
             row.operator("dresg.dismiss", text="", icon="X")
         if mine and current.images:
             layout.operator("dresg.open_view_images", icon="IMAGE_DATA")
+        if has_stylized_colors(obj):
+            layout.prop(obj, "dresg_strength", slider=True)
         row = layout.row(align=True)
         row.operator("dresg.restore_colors", icon="LOOP_BACK")
         row.operator("dresg.export_splats", text="Export", icon="EXPORT")

@@ -117,6 +117,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="stage checkpoints; a rerun with the same settings resumes (default: OUT.ply with .checkpoint)",
     )
+    parser.add_argument(
+        "--strength",
+        type=float,
+        default=1.0,
+        help="how far the written colours go from the scene's own (0) to the stylized ones (1, the default)",
+    )
     parser.add_argument("--quiet", action="store_true", help="print only the summary")
 
 
@@ -243,6 +249,7 @@ def run(args) -> int:
         log_path=log_path,
         save_views_dir=args.save_views,
         messages=messages,
+        strength=args.strength,
     )
     try:
         write_scene(result.scene, out)

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from ..scene.camera import Camera
-from ..scene.gaussians import GaussianScene
+from ..scene.gaussians import GaussianScene, blend_colors
 from ..util.errors import CameraError, ConfigError, NumericalError
 from ..util.machine import peak_rss_mb
 from . import views as view_selection
@@ -82,12 +82,17 @@ def stylize(
     log_path: str | os.PathLike | None = None,
     save_views_dir: str | os.PathLike | None = None,
     messages: Callable[[str], None] | None = None,
+    strength: float = 1.0,
 ) -> StylizeResult:
     """Algorithm 1 of the paper, returning the stylized scene (the input is never modified).
 
     ``views`` fixes the active cameras (indices into ``cameras``); otherwise they are chosen by coverage.
-    Deterministic for ``config.seed`` on the CPU.
+    ``strength`` in [0, 1] blends the result's colours with the input's (1: fully stylized); it is applied
+    to the result only, so a run resumed at another strength reuses its checkpoint. Deterministic for
+    ``config.seed`` on the CPU.
     """
+    if not (math.isfinite(strength) and 0.0 <= strength <= 1.0):
+        raise ConfigError(f"invalid setting: strength must be in [0, 1] (got {strength})")
     hooks = RunHooks(progress, on_stage, cancel, messages)
     record = RunRecord(checkpoint_dir, log_path, save_views_dir)
     run = Stylization(scene, style_rgb, config or StylizeConfig(), hooks, record)
@@ -101,7 +106,10 @@ def stylize(
         if run.finish_stage(stage):  # log, checkpoint, live update; True: the early stop
             break
     run.post_stage()  # covariance colour transfer toward the style, then fitting to it
-    return run.result()
+    result = run.result()
+    if strength < 1.0:
+        result.scene = blend_colors(scene, result.scene, strength)
+    return result
 
 
 def stage_improvement(distances: Sequence[float], window: int = EARLY_STOP_WINDOW) -> float | None:

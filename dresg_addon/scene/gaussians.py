@@ -131,3 +131,31 @@ class GaussianScene:
         if quantile <= 0.0:
             return self.means.min(0), self.means.max(0)
         return np.quantile(self.means, quantile, axis=0), np.quantile(self.means, 1.0 - quantile, axis=0)
+
+
+def blend_coefficients(original: np.ndarray, stylized: np.ndarray, strength: float) -> np.ndarray:
+    """(1 - strength) original + strength stylized, in float32 (exactly either at 0 and 1): the colour
+    coefficients at a stylization strength in [0, 1]. Colours are linear in the SH coefficients, so every
+    view's render blends alike."""
+    if not (np.isfinite(strength) and 0.0 <= strength <= 1.0):
+        raise ValueError(f"strength must be in [0, 1], got {strength}")
+    weight = np.float32(strength)
+    mixed = (np.float32(1) - weight) * np.asarray(original, np.float32) + weight * np.asarray(stylized, np.float32)
+    return mixed.astype(np.float32)
+
+
+def blend_colors(original: GaussianScene, stylized: GaussianScene, strength: float) -> GaussianScene:
+    """``stylized`` with its colours (SH DC and rest bands) ``strength`` of the way from ``original``'s: 0 gives
+    the original colours, 1 the stylized ones; geometry and opacity stay the stylized scene's."""
+    if len(original) != len(stylized):
+        raise ValueError(f"cannot blend {len(original)} splats with {len(stylized)}")
+    rest_a, rest_b = original.sh_rest, stylized.sh_rest
+    if rest_a is None and rest_b is None:
+        sh_rest = None
+    else:
+        rest_a = np.zeros_like(rest_b) if rest_a is None else rest_a
+        rest_b = np.zeros_like(rest_a) if rest_b is None else rest_b
+        if rest_a.shape != rest_b.shape:
+            raise ValueError(f"cannot blend SH bands of shapes {rest_a.shape} and {rest_b.shape}")
+        sh_rest = blend_coefficients(rest_a, rest_b, strength)
+    return replace(stylized, sh_dc=blend_coefficients(original.sh_dc, stylized.sh_dc, strength), sh_rest=sh_rest)

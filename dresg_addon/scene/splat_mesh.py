@@ -47,6 +47,7 @@ ROTATION = "rotation"
 DISPLAY_RANK = "dresg_display_rank"
 SH_DC = "dresg_sh_dc"
 SH_DC_ORIGINAL = "dresg_sh_dc_original"
+SH_DC_STYLIZED = "dresg_sh_dc_stylized"  # the last stylization's colours; SH_DC holds them blended by strength
 LOG_SCALE = "dresg_log_scale"
 QUAT = "dresg_quat"
 OPACITY_LOGIT = "dresg_opacity_logit"
