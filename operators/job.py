@@ -35,7 +35,7 @@ def format_seconds(seconds: float | None) -> str:
 class StylizeJob:
     """One run of :func:`dresg_addon.method.loop.stylize` on a splat object."""
 
-    def __init__(self, obj, scene, cameras, style_rgb, config, *, views=None, style_name: str = "") -> None:
+    def __init__(self, obj, scene, cameras, style_rgb, config, *, views=None, style_name: str = "", mask=None) -> None:
         self.object_name = obj.name
         self.object_uid = obj.session_uid
         self.n_splats = len(scene)
@@ -52,6 +52,7 @@ class StylizeJob:
         self.seconds = 0.0
         self.messages: list[str] = []  # the engine's notes (views chosen, Gaussians optimised...)
         self._inputs = (scene, cameras, style_rgb, views)
+        self.mask = mask  # [N] bool: the selection this run stylizes (None: every splat)
         self._task = BackgroundTask("dresg-stylize", self._work)
         self._cancel = self._task.cancel_event
         self._started = time.monotonic()
@@ -117,6 +118,7 @@ class StylizeJob:
             on_stage=lambda update: post("stage", update),
             cancel=cancel,
             messages=lambda message: post("message", message),
+            mask=self.mask,
         )
 
     # -- main thread ---------------------------------------------------------------------------

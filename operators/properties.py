@@ -204,6 +204,19 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         default=50.0,
     )
     camera_index: IntProperty(name="Active Camera Row", description="The highlighted row of the Views list")
+    selection: EnumProperty(
+        name="Stylize",
+        description="Which splats a run changes (the others keep their colours, from the import or earlier runs)",
+        items=(
+            ("ALL", "All Splats", "Every splat the views see"),
+            ("SELECTED", "Selected Splats", "The splats (vertices) selected in Edit Mode"),
+            ("GROUP", "Vertex Group", "The splats in a vertex group, or where a boolean point attribute is true"),
+        ),
+        default="ALL",
+    )
+    selection_group: StringProperty(
+        name="Group", description="Name of the vertex group or boolean point attribute that holds the splats"
+    )
 
     def config(self, model_path: str = "", dino_path: str = "") -> StylizeConfig:
         """The StylizeConfig these fields describe (ConfigError when a combination cannot work)."""

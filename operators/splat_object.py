@@ -147,6 +147,48 @@ def scene_from_object(obj) -> GaussianScene:
     return scene
 
 
+def selection_mask(obj, mode: str, group: str = "") -> np.ndarray | None:
+    """[N] bool of the splats a run should change: None for ALL; the Edit Mode selection (SELECTED); a vertex
+    group's members or a boolean point attribute (GROUP). SceneFormatError names what is missing or empty."""
+    if mode == "ALL":
+        return None
+    mesh = obj.data
+    n = len(mesh.vertices)
+    if mode == "SELECTED":
+        if obj.mode == "EDIT":
+            obj.update_from_editmode()  # Edit Mode keeps its selection in the edit mesh until synced
+        mask = np.zeros(n, bool)
+        mesh.vertices.foreach_get("select", mask)
+        what = "no splat is selected (select some in Edit Mode)"
+    else:
+        attribute = mesh.attributes.get(group) if group else None
+        vertex_group = obj.vertex_groups.get(group) if group else None
+        if attribute is not None and attribute.domain == "POINT" and attribute.data_type == "BOOLEAN":
+            mask = np.zeros(n, bool)
+            attribute.data.foreach_get("value", mask)
+        elif vertex_group is not None:
+            mask = np.zeros(n, bool)
+            index = vertex_group.index
+            for vertex in mesh.vertices:
+                mask[vertex.index] = any(g.group == index and g.weight > 0 for g in vertex.groups)
+        else:
+            raise SceneFormatError(f"'{obj.name}' has no vertex group or boolean attribute named '{group}'")
+        what = f"'{group}' holds no splat"
+    if not mask.any():
+        raise SceneFormatError(f"{obj.name}: {what}")
+    return mask
+
+
+def stylized_scene(obj) -> GaussianScene:
+    """The scene with the last runs' colours at full strength: what a further run starts from, so splats it does
+    not select keep what earlier runs (with other paintings) gave them."""
+    scene = scene_from_object(obj)
+    stylized = read_attribute(obj.data, sm.SH_DC_STYLIZED)
+    if stylized is not None:
+        scene.sh_dc = np.ascontiguousarray(stylized, np.float32)
+    return scene
+
+
 def strength(obj) -> float:
     return float(getattr(obj, "dresg_strength", 1.0))
 
@@ -202,9 +244,17 @@ def write_geometry(obj, means: np.ndarray, log_scales: np.ndarray, quats: np.nda
     mesh.update()
 
 
-def restore_original(obj) -> None:
-    """Bring back the imported colours (and geometry, when the optimizer moved it); lossless."""
+def restore_original(obj, mask: np.ndarray | None = None) -> None:
+    """Bring back the imported colours (and geometry, when the optimizer moved it); lossless. With ``mask``
+    only those splats' colours: the rest keep their stylized ones."""
     mesh = obj.data
+    stylized = read_attribute(mesh, sm.SH_DC_STYLIZED)
+    if mask is not None and stylized is not None:
+        stylized[mask] = read_attribute(mesh, sm.SH_DC_ORIGINAL)[mask]
+        write_attributes(mesh, [sm.PointAttribute(sm.SH_DC_STYLIZED, "FLOAT_VECTOR", stylized)])
+        if not np.array_equal(stylized, read_attribute(mesh, sm.SH_DC_ORIGINAL)):
+            apply_strength(obj)
+            return
     write_attributes(
         mesh, sm.color_attributes(read_attribute(mesh, sm.SH_DC_ORIGINAL), read_attribute(mesh, sm.OPACITY))
     )

@@ -8,7 +8,7 @@ import numpy as np
 from ..dresg_addon.scene import splat_mesh
 from ..dresg_addon.util.errors import DresgError, ImageError
 from . import ADDON_PACKAGE, job
-from .splat_object import is_splat_object, restore_original, scene_from_object
+from .splat_object import is_splat_object, restore_original, selection_mask, stylized_scene
 from .tasks import tag_redraw
 from .views import active_cameras, fitting_cameras, scene_cameras
 
@@ -62,7 +62,8 @@ def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[
         dino_path=bpy.path.abspath(dino_path) if dino_path else "",
     )
     style, style_name = style_image(settings)
-    splats = scene_from_object(obj)
+    mask = selection_mask(obj, settings.selection, settings.selection_group)
+    splats = stylized_scene(obj)  # earlier runs' colours stay on the splats this one does not select
     ticked = active_cameras(scene)
     camera_objects = ticked or scene_cameras(scene)
     views = list(range(len(ticked))) if ticked else None
@@ -78,7 +79,11 @@ def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[
         note = f"No cameras in the scene: using {settings.orbit_count} orbit cameras"
         up = splat_mesh.local_up(np.array(obj.matrix_world))
         cameras = orbit_cameras(splats, settings.orbit_count, elevation_deg=settings.orbit_elevation, up=up)
-    return job.StylizeJob(obj, splats, cameras, style, config, views=views, style_name=style_name), note
+    run = job.StylizeJob(obj, splats, cameras, style, config, views=views, style_name=style_name, mask=mask)
+    if mask is not None:
+        note = f"{note}; " if note else ""
+        note += f"stylizing {int(mask.sum()):,} of {len(mask):,} splats (the selection)"
+    return run, note
 
 
 def _cuda_available() -> bool:
@@ -204,6 +209,12 @@ class DRESG_OT_restore_colors(bpy.types.Operator):
     bl_label = "Restore Original Colours"
     bl_options = {"REGISTER", "UNDO"}
 
+    selection_only: bpy.props.BoolProperty(
+        name="Selection Only",
+        description="Only the splats the Stylize setting selects; the others keep their stylized colours",
+        default=False,
+    )
+
     @classmethod
     def poll(cls, context):
         if not is_splat_object(context.active_object):
@@ -215,9 +226,16 @@ class DRESG_OT_restore_colors(bpy.types.Operator):
         obj = context.active_object
         if job.running_on(obj):  # the run must not write over the restored colours
             job.current().cancel()
-        restore_original(obj)
+        try:
+            settings = context.scene.dresg
+            mask = selection_mask(obj, settings.selection, settings.selection_group) if self.selection_only else None
+        except DresgError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        restore_original(obj, mask)
         tag_redraw()
-        self.report({"INFO"}, f"Restored the original colours of {len(obj.data.vertices)} splats")
+        count = len(obj.data.vertices) if mask is None else int(mask.sum())
+        self.report({"INFO"}, f"Restored the original colours of {count} splats")
         return {"FINISHED"}
 
 

@@ -13,7 +13,7 @@ from mathutils import Matrix
 
 from ..dresg_addon.scene import blender_camera
 from ..dresg_addon.util.errors import DresgError
-from .splat_object import is_splat_object, scene_from_object
+from .splat_object import is_splat_object, scene_from_object, selection_mask
 from .tasks import BackgroundTask, tag_redraw
 
 ORBIT_COLLECTION = "DReSG Orbit Cameras"
@@ -121,8 +121,9 @@ class SelectionJob:
     """View selection as a :class:`~.tasks.BackgroundTask`: the splats and cameras are read on the main thread
     first; the worker posts its progress, and :meth:`poll` (main thread) applies it."""
 
-    def __init__(self, splats, cameras, config, camera_names: list[str]) -> None:
+    def __init__(self, splats, cameras, config, camera_names: list[str], mask=None) -> None:
         self.camera_names = camera_names
+        self.mask = mask  # [N] bool: count only these splats (the Stylize selection)
         self.fraction, self.text = 0.0, f"Rendering visibility 0/{len(cameras)}"
         self.result = None
         self.error = ""
@@ -167,7 +168,12 @@ class SelectionJob:
         splats, cameras, config = self._inputs
         self._inputs = None
         return select_active_views(
-            splats, cameras, config, progress=lambda done, total: post("progress", (done, total)), cancel=cancel
+            splats,
+            cameras,
+            config,
+            progress=lambda done, total: post("progress", (done, total)),
+            cancel=cancel,
+            mask=self.mask,
         )
 
 
@@ -209,7 +215,9 @@ class DRESG_OT_select_views(bpy.types.Operator):
         obj, scene = context.active_object, context.scene
         objects = scene_cameras(scene)
         cameras = fitting_cameras(scene, obj, objects)
-        return SelectionJob(scene_from_object(obj), cameras, scene.dresg.config(), [o.name for o in objects])
+        settings = scene.dresg
+        mask = selection_mask(obj, settings.selection, settings.selection_group)
+        return SelectionJob(scene_from_object(obj), cameras, settings.config(), [o.name for o in objects], mask)
 
     def execute(self, context):
         try:

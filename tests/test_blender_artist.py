@@ -270,3 +270,57 @@ def _catch(function, failures: list) -> None:
         function()
     except Exception as error:
         failures.append(error)
+
+
+def test_two_paintings_on_two_selections_and_restore_per_selection(addon, tmp_path):
+    """Issue 18: a run on a vertex group, then one on the Edit Mode selection with another painting: each
+    changes only its splats and the second keeps the first's colours; Restore works per selection and for
+    all; Select Views runs on the selection."""
+    pytest.importorskip("torch")
+    from dresg_addon.util.imageio import write_image
+
+    ops = addon.operators
+    sm_ = addon.dresg_addon.scene.splat_mesh
+    obj = _import(tmp_path, _scene(n=300, spread=0.5))
+    bpy.ops.dresg.add_orbit_cameras(count=3)
+    settings = bpy.context.scene.dresg
+    for name, value in {"stages": 1, "post_steps": 2, "proposal_width": 32, "proposal_height": 24}.items():
+        setattr(settings, name, value)
+    settings.preset, settings.max_views = "preview", 3
+    for name, colour in (("red", (0.9, 0.1, 0.1)), ("blue", (0.1, 0.2, 0.9))):
+        noise = np.random.default_rng(len(name)).uniform(-0.1, 0.1, (24, 32, 3))
+        write_image(tmp_path / f"{name}.png", np.clip(np.float32(colour) + noise, 0, 1).astype(np.float32))
+    original = ops.splat_object.read_attribute(obj.data, sm_.SH_DC).copy()
+    x = np.array([v.co.x for v in obj.data.vertices])
+    left, right = x < 0, x >= 0
+
+    group = obj.vertex_groups.new(name="left")
+    group.add([int(i) for i in np.flatnonzero(left)], 1.0, "REPLACE")
+    settings.selection, settings.selection_group = "GROUP", "left"
+    settings.style_path = str(tmp_path / "red.png")
+    assert bpy.ops.dresg.select_views() == {"FINISHED"}
+    assert bpy.ops.dresg.stylize() == {"FINISHED"}
+    first = ops.splat_object.read_attribute(obj.data, sm_.SH_DC).copy()
+    np.testing.assert_array_equal(first[right], original[right])
+    assert (np.abs(first[left] - original[left]).max(1) > 1e-4).mean() > 0.5
+
+    for vertex in obj.data.vertices:
+        vertex.select = bool(right[vertex.index])
+    settings.selection, settings.style_path = "SELECTED", str(tmp_path / "blue.png")
+    assert bpy.ops.dresg.stylize() == {"FINISHED"}
+    second = ops.splat_object.read_attribute(obj.data, sm_.SH_DC).copy()
+    np.testing.assert_array_equal(second[left], first[left])  # the first painting's colours stay
+    assert (np.abs(second[right] - original[right]).max(1) > 1e-4).mean() > 0.5
+    red, blue = (0.5 + sm_.SH_C0 * second[left]).mean(0), (0.5 + sm_.SH_C0 * second[right]).mean(0)
+    assert red[0] > red[2] and blue[2] > blue[0]  # each side took its painting's colour
+
+    assert bpy.ops.dresg.restore_colors(selection_only=True) == {"FINISHED"}  # the right side only
+    restored = ops.splat_object.read_attribute(obj.data, sm_.SH_DC)
+    np.testing.assert_array_equal(restored[right], original[right])
+    np.testing.assert_array_equal(restored[left], first[left])
+    assert bpy.ops.dresg.restore_colors() == {"FINISHED"}
+    np.testing.assert_array_equal(ops.splat_object.read_attribute(obj.data, sm_.SH_DC), original)
+
+    settings.selection_group, settings.selection = "nowhere", "GROUP"
+    with pytest.raises(RuntimeError, match="no vertex group or boolean attribute named 'nowhere'"):
+        bpy.ops.dresg.stylize()

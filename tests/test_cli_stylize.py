@@ -257,3 +257,35 @@ def test_demo_command_writes_its_assets_and_before_after_images(tmp_path, monkey
     assert grid.shape == (2 * 48, 4 * 64, 3)  # two novel views: before | colour transfer | after | style
     assert np.abs(grid[:, :64] - grid[:, 64:128]).mean() > 0.01
     assert np.abs(grid[:, :64] - grid[:, 128:192]).mean() > 0.01
+
+
+def test_stylize_a_selection_by_box_or_mask_file_keeps_every_other_splat(files, tmp_path, capsys):
+    """Issue 18: --box and --mask stylize a selection; the other splats are written back bit-identical."""
+    scene = read_scene(files["scene"])
+    inside = scene.means[:, 0] > 0.0
+    by_box = tmp_path / "box.ply"
+    assert cli.main([*_stylize_args(files, by_box), "--box", "0,-1,-1,1,1,1", "--quiet"]) == 0
+    boxed = read_scene(by_box)
+    np.testing.assert_array_equal(boxed.sh_dc[~inside], scene.sh_dc[~inside])
+    np.testing.assert_array_equal(boxed.sh_rest[~inside], scene.sh_rest[~inside])
+    assert (np.abs(boxed.sh_dc[inside] - scene.sh_dc[inside]).max(1) > 1e-4).mean() > 0.5
+
+    indices = tmp_path / "selection.txt"
+    indices.write_text(" ".join(map(str, np.flatnonzero(inside))))
+    masked = tmp_path / "mask.ply"
+    assert cli.main([*_stylize_args(files, masked), "--mask", str(indices), "--quiet"]) == 0
+    np.testing.assert_array_equal(read_scene(masked).sh_dc, boxed.sh_dc)
+    np.save(tmp_path / "selection.npy", inside)
+    assert cli.main([*_stylize_args(files, masked), "--mask", str(tmp_path / "selection.npy"), "--quiet"]) == 0
+    np.testing.assert_array_equal(read_scene(masked).sh_dc, boxed.sh_dc)
+    capsys.readouterr()
+
+    for extra, message in (
+        (["--box", "5,5,5,6,6,6"], "no splat centre lies inside it"),
+        (["--box", "1,2,3"], "--box must be six numbers"),
+        (["--mask", str(tmp_path / "missing.txt")], "missing.txt: cannot read a selection"),
+        (["--mask", str(tmp_path / "selection.npy"), "--geometry"], "needs geometry frozen"),
+    ):
+        assert cli.main([*_stylize_args(files, tmp_path / "never.ply"), *extra]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err

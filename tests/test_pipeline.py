@@ -819,3 +819,39 @@ def test_strength_blends_the_result_with_the_scene_it_came_from():
     assert blend_colors(no_bands, no_bands, 0.3).sh_rest is None
     with pytest.raises(ValueError, match="cannot blend"):
         blend_colors(scene, sphere_scene(n=10), 0.5)
+
+
+def test_a_masked_run_stylizes_the_selection_and_returns_every_other_splat_bit_identical():
+    """Issue 18: stylize(mask=...) optimises only the selected splats (a bool mask or indices); every other
+    splat comes back exactly as it was, SH bands included; view selection counts only the selection; an
+    empty, mis-sized or out-of-range selection is refused."""
+    scene = sphere_scene(sh_degree=1)
+    selected = scene.means[:, 0] > 0.1  # one side of the sphere
+    config = TINY.with_(sh_rest="zero")
+    result = run(scene, config=config, mask=selected).scene
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest"):
+        np.testing.assert_array_equal(getattr(result, name)[~selected], getattr(scene, name)[~selected], err_msg=name)
+    moved = np.abs(result.sh_dc[selected] - scene.sh_dc[selected]).max(1) > 1e-4
+    assert moved.mean() > 0.5 and not result.sh_rest[selected].any()
+    by_index = run(scene, config=config, mask=np.flatnonzero(selected)).scene
+    np.testing.assert_array_equal(by_index.sh_dc, result.sh_dc)
+
+    # A camera that sees only unselected splats covers nothing of the selection: it is not chosen.
+    from dresg_addon.method.views import select_active_views
+
+    cameras = ring_cameras(4)
+    left = scene.means[:, 0] < -0.3
+    plain = select_active_views(scene, cameras, config)
+    masked = select_active_views(scene, cameras, config, mask=left)
+    assert set(masked.indices) <= set(plain.indices)
+    unselected_only = [v for v, cov in enumerate(masked.per_view_coverage) if cov == 0]
+    assert unselected_only and not set(unselected_only) & set(masked.indices)
+
+    for bad, message in (
+        (np.zeros(len(scene), bool), "empty"),
+        (np.ones(3, bool), "entries for"),
+        (np.array([0, len(scene)]), "indices must be in"),
+        (np.array([0.5]), "bool mask or a list"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            run(scene, config=config, mask=bad)

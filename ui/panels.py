@@ -116,6 +116,8 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
             layout.prop(obj, "dresg_strength", slider=True)
         row = layout.row(align=True)
         row.operator("dresg.restore_colors", icon="LOOP_BACK")
+        if context.scene.dresg.selection != "ALL":
+            row.operator("dresg.restore_colors", text="Selection", icon="LOOP_BACK").selection_only = True
         row.operator("dresg.export_splats", text="Export", icon="EXPORT")
 
 
@@ -131,6 +133,9 @@ class DRESG_PT_style(ChildPanel, bpy.types.Panel):
             layout.prop(settings, "style_path")
         else:
             layout.template_ID(settings, "style_image", open="image.open")
+        layout.prop(settings, "selection")
+        if settings.selection == "GROUP":
+            layout.prop_search(settings, "selection_group", context.active_object, "vertex_groups")
         layout.prop(settings, "preset")
         layout.prop(settings, "proposal")
         if settings.proposal == "sd15":

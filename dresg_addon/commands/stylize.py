@@ -117,6 +117,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="stage checkpoints; a rerun with the same settings resumes (default: OUT.ply with .checkpoint)",
     )
+    selection = parser.add_mutually_exclusive_group()
+    selection.add_argument(
+        "--mask",
+        metavar="FILE",
+        help="stylize only these splats: a .npy bool mask or index array, or a text file of splat indices; "
+        "every other splat is written back unchanged",
+    )
+    selection.add_argument(
+        "--box",
+        metavar="X0,Y0,Z0,X1,Y1,Z1",
+        help="stylize only the splats whose centres lie in this axis-aligned box (scene coordinates)",
+    )
     parser.add_argument(
         "--strength",
         type=float,
@@ -157,6 +169,37 @@ def config_from_args(args):
     return preset(args.preset, **overrides)
 
 
+def selection_from_args(args, scene):
+    """The --mask file's or the --box's selection (None: every splat)."""
+    import numpy as np
+
+    if args.box:
+        try:
+            bounds = np.array([float(v) for v in args.box.split(",")], np.float64)
+        except ValueError:
+            bounds = np.zeros(0)
+        if bounds.size != 6 or not np.isfinite(bounds).all():
+            raise ConfigError(f"--box must be six numbers X0,Y0,Z0,X1,Y1,Z1 (got {args.box!r})")
+        low, high = np.minimum(bounds[:3], bounds[3:]), np.maximum(bounds[:3], bounds[3:])
+        inside = np.all((scene.means >= low) & (scene.means <= high), axis=1)
+        if not inside.any():
+            raise ConfigError(f"--box {args.box}: no splat centre lies inside it")
+        return inside
+    if not args.mask:
+        return None
+    path = Path(args.mask)
+    try:
+        if path.suffix.lower() == ".npy":
+            values = np.load(path, allow_pickle=False)
+        else:
+            values = np.array(path.read_text(encoding="utf-8").replace(",", " ").split(), dtype=np.int64)
+    except (OSError, ValueError, UnicodeDecodeError) as error:
+        raise ConfigError(f"{path}: cannot read a selection ({error})") from None
+    if values.dtype != bool and not np.issubdtype(values.dtype, np.integer):
+        raise ConfigError(f"{path}: a selection is a bool mask or splat indices, not {values.dtype}")
+    return values.reshape(-1)
+
+
 def room_needed(scene, cameras, config, out: Path, log_path: Path, checkpoint_dir: Path, views_dir) -> dict[Path, int]:
     """What a run writes, by folder, at most: the stylized scene, the checkpoint (parameters, Adam's two
     moments, each view's state), the log, and with ``views_dir`` four 8-bit images per view and stage."""
@@ -178,7 +221,7 @@ def room_needed(scene, cameras, config, out: Path, log_path: Path, checkpoint_di
 
 def run(args) -> int:
     from ..method.config import check_run_settings
-    from ..method.loop import stylize
+    from ..method.loop import selection_mask, stylize
     from ..scene.io import write_scene
     from ..util.fileutil import check_room
     from ..util.imageio import STYLE_MAX_SIDE, read_rgb
@@ -193,6 +236,7 @@ def run(args) -> int:
             views = [int(v) for v in args.views.split(",")]
         except ValueError:
             raise ConfigError(f"--views must be comma-separated camera indices (got {args.views!r})") from None
+    mask = selection_mask(selection_from_args(args, scene), len(scene), config)  # checked before any note
     out = Path(args.out)
     log_path = Path(args.log) if args.log else out.with_suffix(".log.jsonl")
     checkpoint_dir = Path(args.checkpoint_dir) if args.checkpoint_dir else out.with_suffix(".checkpoint")
@@ -250,6 +294,7 @@ def run(args) -> int:
         save_views_dir=args.save_views,
         messages=messages,
         strength=args.strength,
+        mask=mask,
     )
     try:
         write_scene(result.scene, out)

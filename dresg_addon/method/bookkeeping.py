@@ -104,9 +104,13 @@ def run_id(
     cameras: Sequence[Camera],  # the active cameras
     style: torch.Tensor,  # [3, h, w] at the proposal resolution
     contents: Sequence[torch.Tensor],  # [3, h, w] content image per active view
+    mask: np.ndarray | None = None,  # [N] bool: the selection a masked run optimises
 ) -> str:
-    """What a checkpoint must match to be resumed: the settings, the scene, the active cameras and the images."""
+    """What a checkpoint must match to be resumed: the settings, the scene, the active cameras, the images and
+    the selection."""
     h = hashlib.sha256(json.dumps(config_values, sort_keys=True, default=str).encode())
+    if mask is not None:
+        h.update(b"mask" + np.packbits(np.asarray(mask, bool)).tobytes())
     for array in (scene.means, scene.log_scales, scene.quats, scene.opacity_logits, scene.sh_dc, scene.sh_rest):
         if array is not None:
             h.update(np.ascontiguousarray(array).tobytes())

@@ -94,6 +94,7 @@ class ViewRenderer:
         settings: RasterSettings,
         keep_sh_rest: bool,  # render the scene's view-dependent SH rest bands on top of the fitted colour
         fast: list[ColorOnlyRenderer] | None,  # full-scene colour-only renderers (geometry frozen), else None
+        selected: bool = False,  # ``seen`` is a selection: the other seen Gaussians keep their (DC) colours
     ):
         means, quats, log_scales, logits = geometry_tensors(scene)
         self.means, self.quats = means[seen], quats[seen]
@@ -111,7 +112,8 @@ class ViewRenderer:
                 basis = sh_basis(dirs, degree)[:, 1:]  # [M, K]
                 self.offsets[v] = (basis[:, :, None] * rest).sum(1)
         # Colour-only: the full-scene renderers that found the seen set, narrowed to it (no second rasterization).
-        self.fast = None if fast is None else [f.restrict(seen) for f in fast]
+        fixed = torch.from_numpy(scene.sh_dc * SH_C0 + 0.5).float().clamp_min(0.0) if selected else None
+        self.fast = None if fast is None else [f.restrict(seen, fixed) for f in fast]
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -282,15 +284,22 @@ def fit_residual(
     return math.sqrt(total / count) if count else 0.0
 
 
-def result_scene(scene: GaussianScene, fit: FitState, zero_sh_rest: bool) -> GaussianScene:
-    """The input scene with the fitted colours in the DC term (and offsets applied); never modifies ``scene``."""
+def result_scene(scene: GaussianScene, fit: FitState, zero_sh_rest: bool, selected: bool = False) -> GaussianScene:
+    """The input scene with the fitted colours in the DC term (and offsets applied); never modifies ``scene``.
+
+    ``zero_sh_rest`` drops the view-dependent bands of every splat, or with ``selected`` (a masked run) only
+    of the fitted ones, so that every other splat stays exactly as it was."""
     seen = fit.seen.numpy()
     colors = fit.colors.detach().numpy().astype(np.float64)
     sh_dc = scene.sh_dc.copy()
     sh_dc[seen] = ((colors - 0.5) / SH_C0).astype(np.float32)
     out = replace(scene, sh_dc=sh_dc)
     if scene.sh_rest is not None and zero_sh_rest:
-        out = replace(out, sh_rest=np.zeros_like(scene.sh_rest))
+        sh_rest = np.zeros_like(scene.sh_rest)
+        if selected:
+            sh_rest = scene.sh_rest.copy()
+            sh_rest[seen] = 0.0
+        out = replace(out, sh_rest=sh_rest)
     if fit.d_means is not None:
         means, log_scales, quats = scene.means.copy(), scene.log_scales.copy(), scene.quats.copy()
         means[seen] += fit.d_means.detach().numpy()

@@ -83,19 +83,22 @@ def stylize(
     save_views_dir: str | os.PathLike | None = None,
     messages: Callable[[str], None] | None = None,
     strength: float = 1.0,
+    mask: np.ndarray | None = None,  # [N] bool, or the indices of the splats to stylize
 ) -> StylizeResult:
     """Algorithm 1 of the paper, returning the stylized scene (the input is never modified).
 
     ``views`` fixes the active cameras (indices into ``cameras``); otherwise they are chosen by coverage.
     ``strength`` in [0, 1] blends the result's colours with the input's (1: fully stylized); it is applied
-    to the result only, so a run resumed at another strength reuses its checkpoint. Deterministic for
-    ``config.seed`` on the CPU.
+    to the result only, so a run resumed at another strength reuses its checkpoint. ``mask`` stylizes a
+    selection: only those splats are optimised (and count for view selection), every other one comes back
+    bit-identical. Deterministic for ``config.seed`` on the CPU.
     """
     if not (math.isfinite(strength) and 0.0 <= strength <= 1.0):
         raise ConfigError(f"invalid setting: strength must be in [0, 1] (got {strength})")
+    mask = selection_mask(mask, len(scene), config or StylizeConfig())
     hooks = RunHooks(progress, on_stage, cancel, messages)
     record = RunRecord(checkpoint_dir, log_path, save_views_dir)
-    run = Stylization(scene, style_rgb, config or StylizeConfig(), hooks, record)
+    run = Stylization(scene, style_rgb, config or StylizeConfig(), hooks, record, mask)
     run.select_views(cameras, views)  # Sec. 4.3, Eqs. 13-15: active views by capped coverage
     run.prepare(content_images)  # seen Gaussians, base renders, content views, proposal states
     for stage in run.remaining_stages():  # Sec. 4.2: the DDIM states in stages, gamma_n per stage
@@ -110,6 +113,30 @@ def stylize(
     if strength < 1.0:
         result.scene = blend_colors(scene, result.scene, strength)
     return result
+
+
+def selection_mask(mask, count: int, config: StylizeConfig) -> np.ndarray | None:
+    """A [count] bool array from a bool mask or an index list (None stays None); ConfigError when it cannot be,
+    or when the run would move geometry (the selection's neighbours are drawn with fixed colours only)."""
+    if mask is None:
+        return None
+    if config.optimize_geometry:
+        raise ConfigError("stylizing a selection needs geometry frozen (a colour-only preset, or --no-geometry)")
+    array = np.asarray(mask)
+    if array.dtype == bool:
+        if array.shape != (count,):
+            raise ConfigError(f"the selection mask has {array.size} entries for {count} splats")
+        selected = array.copy()
+    elif np.issubdtype(array.dtype, np.integer) and array.ndim == 1:
+        if array.size and (array.min() < 0 or array.max() >= count):
+            raise ConfigError(f"the selection's indices must be in [0, {count}) (got {array.min()}..{array.max()})")
+        selected = np.zeros(count, bool)
+        selected[array] = True
+    else:
+        raise ConfigError("the selection must be a bool mask or a list of splat indices")
+    if not selected.any():
+        raise ConfigError("the selection is empty: select some splats to stylize")
+    return selected
 
 
 def stage_improvement(distances: Sequence[float], window: int = EARLY_STOP_WINDOW) -> float | None:
@@ -172,8 +199,16 @@ class _StageWork:
 class Stylization:
     """One run of Algorithm 1: the state that flows from step to step, and one method per step."""
 
-    def __init__(self, scene: GaussianScene, style_rgb, config: StylizeConfig, hooks: RunHooks, record: RunRecord):
-        self.scene, self.config, self.hooks, self.record = scene, config, hooks, record
+    def __init__(
+        self,
+        scene: GaussianScene,
+        style_rgb,
+        config: StylizeConfig,
+        hooks: RunHooks,
+        record: RunRecord,
+        mask: np.ndarray | None = None,  # [N] bool: the selection to stylize (None: every splat)
+    ):
+        self.scene, self.config, self.hooks, self.record, self.mask = scene, config, hooks, record, mask
         self.style_rgb = _checked_style(style_rgb)
         check_run_settings(config)
         self.size = (config.proposal_height, config.proposal_width)
@@ -188,7 +223,7 @@ class Stylization:
         """Sec. 4.3: the active views by capped coverage (Eqs. 13-15), or the given ones."""
         self.hooks.report(0, 0, 1, "select", float("nan"), "selecting views by coverage")
         if views is None:
-            self.selection = view_selection.select_active_views(self.scene, cameras, self.config)
+            self.selection = view_selection.select_active_views(self.scene, cameras, self.config, mask=self.mask)
         else:
             bad = [v for v in views if not 0 <= v < len(cameras)]
             if bad or not views:
@@ -213,11 +248,23 @@ class Stylization:
         raster = config.raster_settings()
         seen, fast = seen_gaussians(self.scene, self.cameras, raster, config.optimize_geometry)
         left_out = len(self.scene) - seen.numel()
-        say(
-            f"optimising {seen.numel()} of {len(self.scene)} Gaussians ({left_out} unseen by the active views are left out)"
-        )
+        if self.mask is not None:
+            seen = seen[torch.from_numpy(self.mask)[seen]]
+            if seen.numel() == 0:
+                raise CameraError("the active cameras see none of the selected Gaussians")
+            say(
+                f"optimising {seen.numel()} of {len(self.scene)} Gaussians: the {int(self.mask.sum())} selected, "
+                f"{int(self.mask.sum()) - seen.numel()} of them unseen by the active views"
+            )
+        else:
+            say(
+                f"optimising {seen.numel()} of {len(self.scene)} Gaussians "
+                f"({left_out} unseen by the active views are left out)"
+            )
         self.state = state = FitState.start(self.scene, seen, config.optimize_geometry)
-        self.renderer = ViewRenderer(self.scene, self.cameras, seen, raster, config.sh_rest == "keep", fast)
+        self.renderer = ViewRenderer(
+            self.scene, self.cameras, seen, raster, config.sh_rest == "keep", fast, self.mask is not None
+        )
         if config.solves_colors():
             say(f"colour fit: bounded least squares over the {len(self.cameras)} active views, solved each stage")
             features = None  # Eq. 16's L1, DSSIM, TV and feature terms shape gradient fits only
@@ -276,7 +323,11 @@ class Stylization:
     def _resume_or_encode(self, base_renders: list[torch.Tensor]) -> None:
         """Resume from a checkpoint of the same run, else encode the base renders; the style distances so far."""
         resumable = self.record.checkpoint is not None
-        key = run_id(self.config.to_dict(), self.scene, self.cameras, self.style, self.contents) if resumable else ""
+        key = (
+            run_id(self.config.to_dict(), self.scene, self.cameras, self.style, self.contents, self.mask)
+            if resumable
+            else ""
+        )
         saved = self.record.resume(key, self.hooks.say)
         if saved is not None:
             with torch.no_grad():
@@ -485,7 +536,7 @@ class Stylization:
         self.hooks.stage_done(lambda: self._stage_update(len(self.stages) + 1, {}))
 
     def result(self) -> StylizeResult:
-        scene = result_scene(self.scene, self.state, self.config.sh_rest == "zero")
+        scene = result_scene(self.scene, self.state, self.config.sh_rest == "zero", self.mask is not None)
         seconds = self.hooks.elapsed()
         log = self.record.entries
         last_loss = log[-1]["fit_loss_last"] if log else float("nan")
@@ -512,7 +563,7 @@ class Stylization:
 
     def _stage_update(self, stage: int, images) -> StageUpdate:
         geometry = self.config.optimize_geometry
-        scene = result_scene(self.scene, self.state, self.config.sh_rest == "zero")
+        scene = result_scene(self.scene, self.state, self.config.sh_rest == "zero", self.mask is not None)
         return StageUpdate(
             stage,
             scene.sh_dc,

@@ -295,10 +295,12 @@ def select_active_views(
     *,
     progress: Callable[[int, int], None] | None = None,
     cancel: threading.Event | None = None,
+    mask: np.ndarray | None = None,  # [N] bool: only these splats count (a stylized selection)
 ) -> ActiveViews:
     """Sec. 4.3: greedy capped-coverage selection (Eqs. 13-15) on the rasterizer's visibility weights.
 
-    ``progress`` and ``cancel`` as for :func:`visibility_matrix` (one render per camera is the cost).
+    ``progress`` and ``cancel`` as for :func:`visibility_matrix` (one render per camera is the cost). With a
+    ``mask`` coverage counts the selected splats only, so the views chosen are the ones that see them.
     """
     if not cameras:
         raise CameraError("no cameras: add cameras to the scene, give a cameras file, or use orbit cameras")
@@ -309,6 +311,11 @@ def select_active_views(
         progress=progress,
         cancel=cancel,
     )
+    if mask is not None:  # splats outside the selection are seen by no view, as far as coverage goes
+        keep = torch.from_numpy(np.asarray(mask, bool))[w.indices()[1]]
+        w = torch.sparse_coo_tensor(  # a coalesced tensor's entries, some left out: still coalesced
+            w.indices()[:, keep], w.values()[keep], w.shape, check_invariants=False, is_coalesced=True
+        )
     settings = config.view_selection()
     chosen = select_views(w, settings)
     dense_max = w.to_dense().amax(0).numpy().astype(np.float64) if len(scene) * len(cameras) <= 5e7 else None

@@ -609,13 +609,21 @@ class ColorOnlyRenderer:
     def _build(self, n_columns: int) -> None:
         self.map = SparseColorMap(self._pixel, self._gauss, self._weight, self.shape[0] * self.shape[1], n_columns)
 
-    def restrict(self, keep: torch.Tensor) -> ColorOnlyRenderer:
-        """Use only the Gaussians ``keep`` (sorted indices, a superset of ``seen``): colours become [len(keep), 3]."""
+    def restrict(self, keep: torch.Tensor, fixed_colors: torch.Tensor | None = None) -> ColorOnlyRenderer:
+        """Use only the Gaussians ``keep`` (sorted indices): colours become [len(keep), 3]. Without
+        ``fixed_colors`` ``keep`` must hold every Gaussian the view sees; with them ([N, 3], every Gaussian's
+        colour), the samples of the others are drawn in those colours into the constant background term."""
         column = torch.full((self.seen.numel(),), -1, dtype=torch.long, device=keep.device)
         column[keep] = torch.arange(keep.numel(), device=keep.device)
-        self._gauss = column[self._gauss]
-        if (self._gauss < 0).any():
-            raise ValueError("restrict: every Gaussian the view sees must be kept")
+        columns = column[self._gauss]
+        dropped = columns < 0
+        if bool(dropped.any()):
+            if fixed_colors is None:
+                raise ValueError("restrict: every Gaussian the view sees must be kept")
+            contribution = self._weight[dropped, None] * fixed_colors[self._gauss[dropped]].float()
+            self.background = self.background.index_add(0, self._pixel[dropped], contribution)
+            self._pixel, self._weight, columns = self._pixel[~dropped], self._weight[~dropped], columns[~dropped]
+        self._gauss = columns
         self.seen = self.seen[keep]
         self._build(keep.numel())
         return self
