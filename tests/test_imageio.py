@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from dresg_addon.util import imageio
-from dresg_addon.util.errors import ImageError
+from dresg_addon.util.errors import ImageError, WriteError
 from dresg_addon.util.imageio import read_image, read_rgb, resize_image, to_array, to_tensor, write_image
 
 
@@ -228,6 +228,8 @@ def test_failed_encoder_leaves_existing_file_intact(tmp_path, rgb, monkeypatch):
         def write_image(self, data):
             return False
 
+        has_error = True
+
         def geterror(self):
             return "disk full"
 
@@ -235,7 +237,7 @@ def test_failed_encoder_leaves_existing_file_intact(tmp_path, rgb, monkeypatch):
             return True
 
     monkeypatch.setattr(oiio.ImageOutput, "create", staticmethod(lambda name: FailingOutput()))
-    with pytest.raises(ImageError, match=r"keep\.png: write failed \(disk full\)"):
+    with pytest.raises(WriteError, match=r"keep\.png: cannot write: disk full"):
         write_image(path, rgb * 0.5)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["keep.png"]

@@ -290,11 +290,12 @@ def write_image(
         if out is None:
             raise ImageError(with_path(path, f"cannot create a {format_name} writer ({_one_line(oiio.geterror())})"))
         # Every step is checked, the close too, and the file is read back: OpenImageIO reports some failed
-        # writes only as a message beside a successful return, and libpng's buffered last bytes not at all.
-        written = out.open(tmp, spec) and out.write_image(data) and not out.has_error
-        problem = "" if written else out.geterror()
+        # writes only as a message beside a successful return (and some harmless ones, such as TIFF's Exif
+        # directory, the same way), and libpng's buffered last bytes not at all.
+        written = out.open(tmp, spec) and out.write_image(data)
+        problem = out.geterror() if out.has_error else ""
         closed = out.close()
-        if not written or not closed or out.has_error:
+        if not written or not closed:
             _raise_write_failure(path, tmp, problem or out.geterror() or "the encoder failed")
         with _native_stderr():  # a truncated file makes libpng print its own complaint
             check = oiio.ImageInput.open(tmp)
@@ -303,7 +304,7 @@ def write_image(
             reason = oiio.geterror() if check is None else check.geterror()
             if check is not None:
                 check.close()
-            _raise_write_failure(path, tmp, f"the written file does not read back ({_one_line(reason)})")
+            _raise_write_failure(path, tmp, problem or f"the written file does not read back ({_one_line(reason)})")
         check.close()
 
     atomic_write_with(path, write)
