@@ -21,7 +21,7 @@ from dresg_addon.scene.io import (
 )
 from dresg_addon.scene.io.compressed_ply import morton_order
 from dresg_addon.scene.io.ply_container import PLY_TYPES
-from dresg_addon.util.errors import SceneFormatError
+from dresg_addon.util.errors import SceneFormatError, WriteError
 
 REST = {0: 0, 1: 3, 2: 8, 3: 15}
 
@@ -579,7 +579,7 @@ def test_failed_write_leaves_the_old_file(tmp_path, monkeypatch, good_ply):
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(scene_io, "_write_parts", half_then_fail)
-    with pytest.raises(SceneFormatError, match="No space left on device"):
+    with pytest.raises(WriteError, match="good.ply: cannot write: No space left on device"):
         write_scene(random_scene(n=5), good_ply)
     assert digest(good_ply) == before
     assert os.listdir(good_ply.parent) == ["good.ply"]  # no temporary file left behind
