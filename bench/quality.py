@@ -387,7 +387,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--styles", help="comma-separated style names (default: every shared painting, or the demo's)")
     parser.add_argument("--rows", default=",".join(ROWS), help="comma-separated rows (default: all)")
     parser.add_argument("--markdown", metavar="FILE", help="also write the report to FILE (markdown)")
-    parser.add_argument("--json", metavar="FILE", help="also write every measurement to FILE")
+    parser.add_argument(
+        "--json", metavar="FILE", help="also write every measurement to FILE (rewritten after each pair)"
+    )
     parser.add_argument("--figures", metavar="DIR", help="write novel-view renders at 2x of every case to DIR")
     parser.add_argument("--figure-views", default="0", help="comma-separated novel-view indices to write (default 0)")
     parser.add_argument("--threads", type=int, help="torch threads in every case (default: torch's own choice)")
@@ -449,6 +451,8 @@ def main(argv: list[str] | None = None) -> int:
             lines = [f"### {scene} x {style}", "", *table(case_rows), ""]
             print("\n".join(lines), flush=True)
             out += lines
+            if args.json:  # after every pair, so a run stopped early keeps what it measured (see --from-json)
+                write_json(args.json, results)
     lines = [f"### Means over {len(results)} scene x style pairs", "", *verdicts(results, rows, args.quick), ""]
     lines.append(
         f"Benchmark wall time: {(time.perf_counter() - started) / 60:.1f} min; load average at the end: {load_average()}."
@@ -458,9 +462,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.markdown:
         Path(args.markdown).write_text("\n".join(out) + "\n", encoding="utf-8")
     if args.json:
-        flat = {f"{scene}/{style}": cases for (scene, style), cases in results.items()}
-        Path(args.json).write_text(json.dumps(flat, indent=1), encoding="utf-8")
+        write_json(args.json, results)
     return 0
+
+
+def write_json(path: str, results: dict) -> None:
+    from dresg_addon.util.fileutil import atomic_write_bytes
+
+    flat = {f"{scene}/{style}": cases for (scene, style), cases in results.items()}
+    atomic_write_bytes(path, json.dumps(flat, indent=1).encode("utf-8"))
 
 
 if __name__ == "__main__":
