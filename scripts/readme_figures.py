@@ -3,7 +3,7 @@
     .venv/bin/python bench/quality.py --figures FIGS --figure-views 3
     .venv/bin/python scripts/readme_figures.py --figures FIGS --view 3 \\
         --pairs bonsai:starry_night,bonsai:the_scream,bonsai:woman-with-hat-matisse,luigi:starry_night,... \\
-        --out docs/before_after.png
+        --out docs/before_after.jpg
 
 Every picture is a novel view of the benchmark (a camera between the ones the scene was stylized from), so
 the figure shows what the table measures, rendered at twice the fit size and cropped to the fit size around
@@ -42,7 +42,7 @@ def main() -> int:
     parser.add_argument("--pairs", required=True, help="comma-separated scene:style pairs, one row each")
     parser.add_argument("--view", type=int, default=3, help="novel-view index (as written by --figure-views)")
     parser.add_argument("--row", default="standard", help="the stylized row to show (default: standard)")
-    parser.add_argument("--out", default=str(REPO / "docs" / "before_after.png"))
+    parser.add_argument("--out", default=str(REPO / "docs" / "before_after.jpg"))
     args = parser.parse_args()
     folder = Path(args.figures)
     rows = []
