@@ -139,12 +139,12 @@ def create_splat_object(
 def scene_from_object(obj) -> GaussianScene:
     """The scene an imported (and possibly stylized) splat object holds, in the file's frame."""
     mesh = obj.data
-    scene = sm.scene_from_attributes(
-        read_positions(mesh), lambda name: read_attribute(mesh, name), extras=dict(obj.get("dresg_extras", {}))
+    return sm.scene_from_attributes(
+        read_positions(mesh),
+        lambda name: read_attribute(mesh, name),
+        extras=dict(obj.get("dresg_extras", {})),
+        sh_rest_scale=1.0 - strength(obj) if obj.get("dresg_sh_rest") == "zero" else 1.0,
     )
-    if obj.get("dresg_sh_rest") == "zero" and scene.sh_rest is not None:  # blended toward none by the strength
-        scene.sh_rest = blend_coefficients(scene.sh_rest, np.zeros_like(scene.sh_rest), strength(obj))
-    return scene
 
 
 def selection_mask(obj, mode: str, group: str = "") -> np.ndarray | None:

@@ -102,7 +102,7 @@ def test_missing_raw_attribute_names_the_problem():
 
 def test_zero_sh_rest_keeps_the_shape():
     scene = random_scene(rest=15)
-    back = sm.scene_from_attributes(scene.means, store(sm.scene_attributes(scene)), zero_sh_rest=True)
+    back = sm.scene_from_attributes(scene.means, store(sm.scene_attributes(scene)), sh_rest_scale=0.0)
     assert back.sh_rest.shape == scene.sh_rest.shape and not back.sh_rest.any()
 
 

@@ -45,7 +45,7 @@ class FitState:
     @classmethod
     def start(cls, scene: GaussianScene, seen: torch.Tensor, geometry: bool) -> FitState:
         """The scene's own colours (SH DC as RGB) and zero offsets (None with geometry frozen)."""
-        base_colors = torch.from_numpy(np.maximum(0.5 + SH_C0 * scene.sh_dc, 0.0).astype(np.float32))[seen]
+        base_colors = torch.from_numpy(scene.base_colors.astype(np.float32))[seen]
 
         def offsets(width):
             return torch.zeros(seen.numel(), width, requires_grad=True) if geometry else None
@@ -112,7 +112,7 @@ class ViewRenderer:
                 basis = sh_basis(dirs, degree)[:, 1:]  # [M, K]
                 self.offsets[v] = (basis[:, :, None] * rest).sum(1)
         # Colour-only: the full-scene renderers that found the seen set, narrowed to it (no second rasterization).
-        fixed = torch.from_numpy(scene.sh_dc * SH_C0 + 0.5).float().clamp_min(0.0) if selected else None
+        fixed = torch.from_numpy(scene.base_colors).float() if selected else None
         self.fast = None if fast is None else [f.restrict(seen, fixed) for f in fast]
 
     def __len__(self) -> int:

@@ -95,10 +95,11 @@ def stylize(
     """
     if not (math.isfinite(strength) and 0.0 <= strength <= 1.0):
         raise ConfigError(f"invalid setting: strength must be in [0, 1] (got {strength})")
-    mask = selection_mask(mask, len(scene), config or StylizeConfig())
+    config = config or StylizeConfig()
+    mask = selection_mask(mask, len(scene), config)
     hooks = RunHooks(progress, on_stage, cancel, messages)
     record = RunRecord(checkpoint_dir, log_path, save_views_dir)
-    run = Stylization(scene, style_rgb, config or StylizeConfig(), hooks, record, mask)
+    run = Stylization(scene, style_rgb, config, hooks, record, mask)
     run.select_views(cameras, views)  # Sec. 4.3, Eqs. 13-15: active views by capped coverage
     run.prepare(content_images)  # seen Gaussians, base renders, content views, proposal states
     for stage in run.remaining_stages():  # Sec. 4.2: the DDIM states in stages, gamma_n per stage

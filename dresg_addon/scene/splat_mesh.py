@@ -189,12 +189,13 @@ def scene_from_attributes(
     read: Reader,
     *,
     extras: dict[str, str] | None = None,  # name -> dtype string, from extra_dtypes
-    zero_sh_rest: bool = False,
+    sh_rest_scale: float = 1.0,
 ) -> GaussianScene:
     """The scene a splat mesh holds: raw attributes, the current DC colours and the current geometry.
 
-    ``zero_sh_rest`` drops view-dependent colour (the stylized scene's choice) without touching the
-    stored SH rest, so restoring the original colours brings it back.
+    ``sh_rest_scale`` is how much of the stored view-dependent colour the scene shows: 0 drops it (a
+    stylized scene's choice), 1 - strength blends it out with the stylization's strength; the stored SH
+    rest is not touched, so restoring the original colours brings it back.
     """
     n = means.shape[0]
 
@@ -208,8 +209,10 @@ def scene_from_attributes(
     while (values := read(sh_rest_name(len(rest)))) is not None:
         rest.append(np.asarray(values, dtype=np.float32).reshape(n, 3))
     sh_rest = np.stack(rest, axis=1) if rest else None  # [N, K, 3]
-    if sh_rest is not None and zero_sh_rest:
-        sh_rest = np.zeros_like(sh_rest)
+    if sh_rest is not None and sh_rest_scale == 0.0:
+        sh_rest = np.zeros_like(sh_rest)  # exact zeros, not -0.0
+    elif sh_rest is not None and sh_rest_scale != 1.0:
+        sh_rest = (sh_rest * np.float32(sh_rest_scale)).astype(np.float32)
     normals = read(NORMAL)
     scene_extras = {}
     for name, dtype in (extras or {}).items():

@@ -285,7 +285,7 @@ def write_image(
 
     def write(tmp: str) -> None:
         if format_name == "jpeg":  # libjpeg ends the process on a failed write instead of reporting it
-            _check_room(path, tmp, 2 * data.nbytes + 65536)
+            _check_jpeg_fits(path, tmp, 2 * data.nbytes + 65536)
         out = oiio.ImageOutput.create(tmp)
         if out is None:
             raise ImageError(with_path(path, f"cannot create a {format_name} writer ({_one_line(oiio.geterror())})"))
@@ -323,7 +323,7 @@ def _raise_write_failure(path: Path, tmp: str, problem: str) -> None:
     raise WriteError(with_path(path, f"cannot write: {_one_line(problem)}"))
 
 
-def _check_room(path: Path, tmp: str, needed: int) -> None:
+def _check_jpeg_fits(path: Path, tmp: str, needed: int) -> None:
     """Raise WriteError when a file of up to ``needed`` bytes cannot fit: the disk's free space, and the
     process's file size limit where the OS has one."""
     reasons = []
