@@ -12,10 +12,17 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from dresg_addon.util.machine import cpu_model, peak_rss_mb, usable_cores
 
-from dresg_addon.util.machine import cpu_model, peak_rss_mb, usable_cores  # noqa: E402  (needs the repository on the path)
+REPO = Path(__file__).resolve().parents[1]
+
+
+def load_addon():
+    """This checkout's Blender extension, registered (bpy module), through the headless script: Blender's entry
+    point, run by path as ``blender -P`` runs it."""
+    import runpy
+
+    return runpy.run_path(str(REPO / "scripts" / "stylize_headless.py"))["load_addon"]()
 
 
 def peak_rss_bytes() -> int:

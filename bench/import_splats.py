@@ -12,7 +12,6 @@ Targets: bonsai operator <= 0.3 s (issue 5) and whole call <= 0.5 s (issue 10), 
 """
 
 import argparse
-import importlib.util
 import os
 import sys
 import tempfile
@@ -20,20 +19,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+from harness import load_addon
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("DRESG_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
-def load_addon():
-    spec = importlib.util.spec_from_file_location("dresg_stylize_headless", REPO / "scripts" / "stylize_headless.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.load_addon()
-
-
 def synthetic_ply(path: Path, n: int) -> None:
-    sys.path.insert(0, str(REPO))
     from dresg_addon.scene.gaussians import GaussianScene
     from dresg_addon.scene.io import write_scene
 

@@ -56,7 +56,7 @@ import sys
 import time
 from pathlib import Path
 
-import harness  # first: it puts the repository on sys.path
+import harness  # bench/, beside this script
 
 from dresg_addon.util.machine import load_average
 

@@ -40,7 +40,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import harness  # first: it puts the repository on sys.path
+import harness  # bench/, beside this script
 
 from dresg_addon.util.machine import load_average
 

@@ -1,4 +1,5 @@
-"""``python -m dresg_addon <command> ...``: one sub-command per module in ``dresg_addon/commands``.
+"""``dresg <command> ...`` (or ``python -m dresg_addon <command> ...``): one sub-command per module in
+``dresg_addon/commands``.
 
 Each command module defines ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``.
 Engine errors (:class:`~dresg_addon.util.errors.DresgError`) become one line on stderr and exit code 2.
@@ -8,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from . import __version__
@@ -25,9 +27,15 @@ COMMAND_MODULES = (
 )
 
 
+def program_name() -> str:
+    """How the user called us: ``dresg`` (the console command) or ``python -m dresg_addon``."""
+    name = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
+    return "python -m dresg_addon" if name in ("", "__main__.py", "-c") else name
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m dresg_addon",
+        prog=program_name(),
         description="Stylize 3D Gaussian Splatting scenes after a reference image (DReSG).",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")

@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from dresg_addon.scene.demo import demo_style_image, line_drawing_image  # noqa: E402
 from dresg_addon.util.imageio import at_scale, object_window, read_rgb, write_image  # noqa: E402

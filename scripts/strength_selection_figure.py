@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from dresg_addon.method.config import preset  # noqa: E402
 from dresg_addon.method.loop import stylize  # noqa: E402

@@ -37,10 +37,9 @@ OVERRIDES = {  # command-line option -> panel setting
 }
 
 
-def load_addon(package: str = PACKAGE):
-    """This checkout's add-on as package ``package``, registered unless an installed copy already is."""
-    import bpy
-
+def extension(package: str = PACKAGE):
+    """This checkout's add-on imported as package ``package``, as Blender imports an extension from its folder
+    (not registered). The engine comes with it as ``<package>.dresg_addon``: nothing needs to be installed."""
     module = sys.modules.get(package)
     if module is None:
         spec = importlib.util.spec_from_file_location(
@@ -49,15 +48,28 @@ def load_addon(package: str = PACKAGE):
         module = importlib.util.module_from_spec(spec)
         sys.modules[package] = module
         spec.loader.exec_module(module)
+    return module
+
+
+def engine(module: str, package: str = PACKAGE):
+    """A module of the add-on's engine, e.g. ``engine("method.config")``."""
+    extension(package)
+    return importlib.import_module(f"{package}.dresg_addon.{module}")
+
+
+def load_addon(package: str = PACKAGE):
+    """This checkout's add-on as package ``package``, registered unless an installed copy already is."""
+    import bpy
+
+    module = extension(package)
     if not hasattr(bpy.types, "DRESG_OT_stylize"):
         module.register()
     return module
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
-    from dresg_addon.method.config import DEFAULT_PRESET, PRESETS, PROPOSALS
+    config = engine("method.config")
+    DEFAULT_PRESET, PRESETS, PROPOSALS = config.DEFAULT_PRESET, config.PRESETS, config.PROPOSALS
 
     parser = argparse.ArgumentParser(
         prog="stylize_headless.py", description="Stylize a Gaussian splat scene after a style image (DReSG)."
@@ -104,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1 if exit_.code else 0
     import bpy
 
-    from dresg_addon.util.errors import DresgError
+    DresgError = engine("util.errors").DresgError
 
     try:
         if args.blend:
@@ -116,11 +128,9 @@ def main(argv: list[str] | None = None) -> int:
         scene = bpy.context.scene
         axes = AXES[args.axes]
         if axes == "AUTO" and args.cameras:  # the views' own up
-            from dresg_addon.scene.camera_io import load_cameras, mean_camera_up
-            from dresg_addon.scene.splat_mesh import AXIS_LABELS, axis_conversion_for_up
-
-            axes = axis_conversion_for_up(mean_camera_up(load_cameras(args.cameras)))
-            print(f"[stylize] axes: {AXIS_LABELS[axes]}, from the cameras in {args.cameras}")
+            camera_io, splat_mesh = engine("scene.camera_io"), engine("scene.splat_mesh")
+            axes = splat_mesh.axis_conversion_for_up(camera_io.mean_camera_up(camera_io.load_cameras(args.cameras)))
+            print(f"[stylize] axes: {splat_mesh.AXIS_LABELS[axes]}, from the cameras in {args.cameras}")
         bpy.ops.dresg.import_splats(filepath=args.ply, axis_conversion=axes)
         settings = scene.dresg
         settings.preset = args.preset

@@ -13,11 +13,7 @@ from __future__ import annotations
 
 import argparse
 import ast
-import sys
 import time
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dresg_addon.method.proposal import make_backend  # noqa: E402
 from dresg_addon.method.schedule import stage_timesteps  # noqa: E402

@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 # Tests compare runs bit for bit: keep torch's thread count fixed (tests/test_threads.py turns it back on).
 os.environ.setdefault("DRESG_ADAPTIVE_THREADS", "0")
@@ -34,14 +31,11 @@ def shared_data():
 @pytest.fixture
 def addon():
     """The extension registered in a clean, empty Blender file (bpy module); unregistered afterwards."""
-    import importlib.util
-
     bpy = pytest.importorskip("bpy")
+    import stylize_headless  # scripts/, on pytest's pythonpath
+
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    spec = importlib.util.spec_from_file_location("dresg_stylize_headless", REPO / "scripts" / "stylize_headless.py")
-    headless = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(headless)
-    module = headless.load_addon()
+    module = stylize_headless.load_addon()
     yield module
     module.operators.job.set_current(None)
     module.unregister()

@@ -5,22 +5,18 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from test_cameras import colmap_images, write_colmap_binary
+from test_io import graphdeco_columns, random_scene, write_test_ply
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from test_cameras import colmap_images, write_colmap_binary  # noqa: E402
-from test_io import graphdeco_columns, random_scene, write_test_ply  # noqa: E402
-
-from dresg_addon import cli  # noqa: E402
-from dresg_addon.scene.camera_io import MAX_IMAGE_SIDE, load_cameras, read_cameras_json  # noqa: E402
-from dresg_addon.scene.io import read_scene  # noqa: E402
-from dresg_addon.util.errors import CameraError, ImageError, SceneFormatError  # noqa: E402
-from dresg_addon.util.imageio import read_rgb  # noqa: E402
+from dresg_addon import cli
+from dresg_addon.scene.camera_io import MAX_IMAGE_SIDE, load_cameras, read_cameras_json
+from dresg_addon.scene.io import read_scene
+from dresg_addon.util.errors import CameraError, ImageError, SceneFormatError
+from dresg_addon.util.imageio import read_rgb
 
 
 def _one_line_error(capsys, args) -> str:

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from dresg_addon import cli
-from dresg_addon.commands.render import output_stems, parse_background
+from dresg_addon.commands._common import parse_background
+from dresg_addon.commands.render import output_stems
 from dresg_addon.raster import RasterSettings, render_scene
 from dresg_addon.scene.camera import Camera, look_at
 from dresg_addon.scene.camera_io import load_cameras, write_cameras_json

@@ -3,22 +3,17 @@
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from test_pipeline import away_camera, ring_cameras, sphere_scene
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from test_pipeline import away_camera, ring_cameras, sphere_scene  # noqa: E402
-
-from dresg_addon.method.color_solve import ColorSolveSettings, LinearViews, solve_colors  # noqa: E402
-from dresg_addon.raster import ColorOnlyRenderer, geometry_tensors  # noqa: E402
-from dresg_addon.scene.gaussians import GaussianScene  # noqa: E402
-from dresg_addon.util.errors import ConfigError, NumericalError  # noqa: E402
+from dresg_addon.method.color_solve import ColorSolveSettings, LinearViews, solve_colors
+from dresg_addon.raster import ColorOnlyRenderer, geometry_tensors
+from dresg_addon.scene.gaussians import GaussianScene
+from dresg_addon.util.errors import ConfigError, NumericalError
 
 
 def concatenate(a: GaussianScene, b: GaussianScene) -> GaussianScene:

@@ -16,18 +16,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_cameras import colmap_images, write_colmap_text
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from test_cameras import colmap_images, write_colmap_text  # noqa: E402
-
-from dresg_addon import cli  # noqa: E402
-from dresg_addon.scene.camera import Camera, look_at  # noqa: E402
-from dresg_addon.scene.camera_io import load_cameras, write_cameras_json  # noqa: E402
-from dresg_addon.scene.gaussians import SH_C0, GaussianScene  # noqa: E402
-from dresg_addon.scene.io import ClampedColoursWarning, InvalidSplatsWarning, read_scene_detailed, write_scene  # noqa: E402
-from dresg_addon.util.errors import DresgError  # noqa: E402
-from dresg_addon.util.imageio import read_rgb, write_image  # noqa: E402
+from dresg_addon import cli
+from dresg_addon.scene.camera import Camera, look_at
+from dresg_addon.scene.camera_io import load_cameras, write_cameras_json
+from dresg_addon.scene.gaussians import SH_C0, GaussianScene
+from dresg_addon.scene.io import ClampedColoursWarning, InvalidSplatsWarning, read_scene_detailed, write_scene
+from dresg_addon.util.errors import DresgError
+from dresg_addon.util.imageio import read_rgb, write_image
 
 SEED = 20261124
 CASES_PER_FILE = 40

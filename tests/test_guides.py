@@ -3,20 +3,14 @@ and the loop's guided proposals agreeing across views better than unguided ones.
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import torch
+from test_pipeline import TINY, away_camera, ring_cameras, sphere_scene, textured_style
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from test_pipeline import TINY, away_camera, ring_cameras, sphere_scene, textured_style  # noqa: E402
-
-from dresg_addon.method.guides import view_guide  # noqa: E402
-from dresg_addon.method.loop import stylize  # noqa: E402
-from dresg_addon.raster import render_scene  # noqa: E402
-from dresg_addon.scene.warp import warp_to  # noqa: E402
+from dresg_addon.method.guides import view_guide
+from dresg_addon.method.loop import stylize
+from dresg_addon.raster import render_scene
+from dresg_addon.scene.warp import warp_to
 
 
 def renders(scene, cameras):

@@ -715,7 +715,6 @@ def test_sd15_settings_are_checked_before_any_work():
 def test_the_patch_backend_imports_neither_diffusers_nor_transformers():
     code = (
         "import sys, numpy as np\n"
-        "sys.path.insert(0, sys.argv[1])\n"
         "from dresg_addon.scene.camera import Camera\n"
         "from dresg_addon.method.config import StylizeConfig\n"
         "from dresg_addon.method.loop import stylize\n"

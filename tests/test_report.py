@@ -1,152 +1,164 @@
-"""The plotter draws known pixels; the report command writes its four sections and readable PNGs."""
+"""The report's figures are matplotlib PNGs with no non-finite value in them; the report command writes its four
+sections with them, and without matplotlib writes the report without them and says so."""
 
 from __future__ import annotations
 
 import json
+import sys
 
 import numpy as np
 import pytest
 
-from dresg_addon.evaluation import plot
+FIGURE_SHAPES = {
+    "raster_error.png": (480, 760, 3),
+    "work_precision.png": (800, 1120, 3),
+    "convergence.png": (400, 1120, 3),
+}
 
 
-def white(height=40, width=60):
-    return np.ones((height, width, 3), dtype=np.float32)
+def figure_data(rgb_error=1e-6, loss=None, residual=0.02, metric=0.05) -> dict:
+    """What report.json holds, small: every speed knob, two presets and two stage counts, a two-stage log.
+
+    ``rgb_error``, ``loss``, ``residual`` and ``metric`` replace one value of each figure (to try bad ones).
+    """
+    from dresg_addon.raster.knobs import SPEED_KNOBS
+
+    raster_rows = [
+        {"knob": knob, "value": value, "rgb_error": 1e-7 * (i + 1), "alpha_error": 0.0, "pairs": 10,
+         "seconds": 0.01 * 2**i}
+        for i, (knob, value) in enumerate(SPEED_KNOBS)
+    ]  # fmt: skip
+    raster_rows[0]["rgb_error"] = 0.0  # the exact default: drawn at the floor
+    raster_rows[1]["rgb_error"] = rgb_error
+    keys = ("sw_colors", "sw_patches", "ssim", "gs", "short_rmse", "long_rmse")
+    runs = [
+        {"label": label, "group": group, "seconds": seconds, "config": {"stages": stages}, **dict.fromkeys(keys, value)}
+        for label, group, seconds, stages, value in (
+            ("preview", "preset", 4.0, 2, 0.04),
+            ("paper", "preset", 9.0, 4, metric),
+            ("stages 1", "stages", 2.0, 1, 0.06),
+            ("stages 2", "stages", 4.0, 2, 0.04),
+        )
+    ]
+    steps = [(0.5 * k, 1 + k // 4, k % 4 + 1, 0.2 * 0.7**k) for k in range(8)] + [(4.5, "post", 1, 0.001)]
+    if loss is not None:
+        steps[2] = (*steps[2][:3], loss)
+    log = [
+        {"stage": 1, "seconds": 2.0, "target_gap": 0.2, "fit_residual": residual},
+        {"stage": 2, "seconds": 4.0, "target_gap": 0.1, "fit_residual": 0.01},
+    ]
+    return {
+        "raster": {"rows": raster_rows, "camera": "48x32", "window": [0, 0, 8, 8]},
+        "runs": runs,
+        "unstylized": dict.fromkeys(keys, 0.3),
+        "convergence": {"label": "preview", "style": "s", "steps": steps, "log": log},
+    }
 
 
-def test_horizontal_line_covers_exactly_its_row():
-    canvas = white()
-    plot.draw_polyline(canvas, [5.0, 50.0], [10.5, 10.5], (0.0, 0.0, 0.0), width=1.0)
-    # Row 10's pixel centres lie on the line: full coverage between the end caps, nothing a row away.
-    assert canvas[10, 6:50].max() == 0.0
-    assert canvas[9].min() == 1.0 and canvas[11].min() == 1.0
-    assert canvas[10, :4].min() == 1.0 and canvas[10, 52:].min() == 1.0
+def axes_grid(columns=1, rows=1):
+    from matplotlib.figure import Figure
+
+    return list(Figure().subplots(rows, columns, squeeze=False).ravel())
 
 
-def test_antialiased_line_between_rows_splits_its_ink():
-    canvas = white()
-    plot.draw_polyline(canvas, [5.0, 50.0], [11.0, 11.0], (0.0, 0.0, 0.0), width=1.0)
-    # Centred between rows 10 and 11: each pixel half covered, so half grey.
-    np.testing.assert_allclose(canvas[10, 10:45], 0.5, atol=1e-6)
-    np.testing.assert_allclose(canvas[11, 10:45], 0.5, atol=1e-6)
-    assert canvas[9].min() == 1.0 and canvas[12].min() == 1.0
-
-
-def test_diagonal_line_has_constant_ink_per_column():
-    canvas = white(60, 60)
-    plot.draw_polyline(canvas, [5.0, 55.0], [5.0, 35.0], (0.0, 0.0, 0.0), width=2.0)
-    ink = (1.0 - canvas[..., 0]).sum(0)[15:45]
-    # A stroke of width w and slope s covers w * sqrt(1 + s^2) pixels of each column.
-    np.testing.assert_allclose(ink, 2.0 * np.hypot(1.0, 30.0 / 50.0), rtol=0.05)
-
-
-def test_polyline_joint_is_not_drawn_twice():
-    canvas = white()
-    plot.draw_polyline(canvas, [5.0, 30.0, 30.0], [10.5, 10.5, 35.0], (0.2, 0.4, 0.6), width=3.0)
-    assert canvas.min() >= 0.2 - 1e-6  # blending the colour twice would go below it
-
-
-@pytest.mark.parametrize("marker", ["o", "s", "D", "^", "v"])
-def test_marker_is_filled_at_its_centre_only(marker):
-    canvas = white()
-    plot.draw_marker(canvas, 20.5, 20.5, (1.0, 0.0, 0.0), marker, size=4.0)
-    np.testing.assert_allclose(canvas[20, 20], [1.0, 0.0, 0.0], atol=1e-6)
-    assert canvas[20, 30].min() == 1.0 and canvas[10, 20].min() == 1.0
-
-
-@pytest.mark.parametrize("backend", ["oiio", "bitmap"])
-def test_text_is_drawn_right_of_its_anchor_above_the_baseline(backend):
-    if backend == "oiio" and not plot.oiio_text_available():
-        pytest.skip("OpenImageIO has no font here")
-    canvas = white(40, 120)
-    plot.draw_text(canvas, "0.25 SW", 10, 25, 13, (0.0, 0.0, 0.0), backend=backend)
-    ink = canvas[..., 0] < 0.5
-    rows, cols = np.nonzero(ink)
-    assert cols.min() >= 10 and cols.max() < 10 + plot.text_width("0.25 SW", 13, backend)
-    assert rows.min() >= 25 - 14 and rows.max() <= 25  # cap height above the baseline, nothing below
-    assert (rows < 25 - 6).any()
-
-
-def test_bitmap_digit_one_matches_its_glyph():
-    mask, baseline = plot.text_mask("1", 10, backend="bitmap")
-    glyph = mask[1:8, 1:6]  # one pixel of padding above and left of the 7 x 5 glyph
-    expected = np.array([[c == "1" for c in row] for row in plot._GLYPHS["1"].split()], dtype=np.float32)
-    np.testing.assert_array_equal(glyph, expected)
-    assert baseline == 8
-
-
-def test_rotated_text_reads_upwards():
-    canvas = white(120, 40)
-    plot.draw_text(canvas, "time (s)", 20, 60, 13, (0.0, 0.0, 0.0), rotate=True)
-    rows, cols = np.nonzero(canvas[..., 0] < 0.5)
-    assert rows.max() - rows.min() > cols.max() - cols.min()  # taller than wide
-
-
-def test_ticks_and_labels():
-    assert plot.nice_ticks(0.0, 1.0) == [0.0, 0.2, 0.4, 0.6, 0.8, 1.0]
-    assert plot.nice_ticks(3.2, 48.0) == [10.0, 20.0, 30.0, 40.0]
-    assert plot.log_ticks(1e-7, 1e-1) == [10.0**k for k in range(-7, 0)]
-    assert plot.log_ticks(1e-15, 1e-1)[:2] == [1e-15, 1e-13]  # thinned to at most ~7 decades
-    assert plot.log_ticks(0.15, 0.9) == [0.2, 0.5]
-    assert [plot.format_tick(v) for v in (0, 0.25, 12, 1500, 3e-5, 2e6)] == ["0", "0.25", "12", "1.5k", "3e-5", "2e6"]
-
-
-def test_panel_draws_a_constant_series_as_one_row():
-    red = (1.0, 0.0, 0.0)
-    panel = plot.Panel("t", "x", "y", legend=False)
-    panel.series.append(plot.Series([0.0, 1.0], [0.5, 0.5], color=red, marker=None, line_width=1.0))
-    panel.series.append(plot.Series([0.0, 1.0], [0.0, 1.0], color=(0.0, 0.0, 1.0), marker=None))
-    image = plot.render_panel(panel, 320, 240)
-    assert image.shape == (240, 320, 3) and image.dtype == np.float32
-    reddish = (image[..., 0] > 0.9) & (image[..., 1] < 0.6) & (image[..., 2] < 0.6)
-    rows = np.nonzero(reddish)[0]
-    assert rows.size > 100 and rows.max() - rows.min() <= 2  # one horizontal stroke
-    blueish = (image[..., 2] > 0.9) & (image[..., 0] < 0.3)
-    blue_rows, blue_cols = np.nonzero(blueish)
-    # y = x rises to the right (image rows decrease) and crosses the red line near the middle.
-    assert np.corrcoef(blue_rows, blue_cols)[0, 1] < -0.99
-    middle = blue_cols[np.abs(blue_rows - rows.mean()) < 1]
-    assert abs(middle.mean() - (blue_cols.min() + blue_cols.max()) / 2) < 4
-
-
-def test_figure_tiles_panels_and_saves(tmp_path):
+def test_figures_are_matplotlib_pngs_of_their_panel_sizes(tmp_path):
+    from dresg_addon.evaluation.report import draw_plots
     from dresg_addon.util.imageio import read_image
 
-    panels = [plot.Panel(f"p{i}", "x", "y", ylog=True) for i in range(3)]
-    for p in panels:
-        p.series.append(plot.Series([1.0, 2.0, 3.0], [1e-3, 1e-5, 0.0], "s", point_labels=["a", "b", "c"]))
-    image = plot.render_figure(panels, columns=2, panel_size=(300, 220))
-    assert image.shape == (440, 600, 3)
-    plot.save_png(tmp_path / "f.png", image)
-    back = read_image(tmp_path / "f.png")
-    assert back.shape == (440, 600, 3)
-    np.testing.assert_allclose(back, np.round(image * 255) / 255, atol=1e-6)
+    draw_plots(figure_data(), tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(FIGURE_SHAPES)  # no temporary file left behind
+    for name, shape in FIGURE_SHAPES.items():
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        image = read_image(tmp_path / name)
+        assert image.shape == shape and np.isfinite(image).all()
+        assert np.median(image) == 1.0  # a white page
+        assert (image.max(-1) < 0.3).mean() > 0.002  # dark text and axes
+        saturated = image.max(-1) - image.min(-1) > 0.4  # the coloured series
+        assert saturated.mean() > 0.0005
+    assert "matplotlib.pyplot" not in sys.modules  # drawn on its own canvases: no global backend chosen
 
 
-def test_raster_panel_and_table_follow_the_shared_speed_knobs():
-    from dresg_addon.evaluation.report import QUICK_RASTER_KNOBS, _knob_value_label, raster_panel, raster_table
+def test_non_finite_values_never_reach_the_figures(tmp_path):
+    from dresg_addon.evaluation.report import draw_plots, plot_convergence, plot_raster_error, plot_work_precision
+    from dresg_addon.util.imageio import read_image
+
+    nan, inf = float("nan"), float("inf")
+    data = figure_data(rgb_error=nan, loss=inf, residual=nan, metric=inf)
+    draw_plots(data, tmp_path)
+    for name, shape in FIGURE_SHAPES.items():
+        assert read_image(tmp_path / name).shape == shape
+    raster_ax, *work_axes = axes_grid(5)
+    plot_raster_error(raster_ax, data["raster"])
+    plot_work_precision(work_axes, data["runs"], data["unstylized"])
+    steps_ax, stage_ax = axes_grid(2)
+    plot_convergence([steps_ax, stage_ax], data["convergence"]["steps"], data["convergence"]["log"])
+    for ax in (raster_ax, *work_axes, steps_ax, stage_ax):
+        for line in ax.get_lines():
+            xy = line.get_xydata()
+            assert np.isfinite(xy).all(), ax.get_title()
+    points = sum(len(line.get_xdata()) for line in raster_ax.get_lines())
+    assert points == len(data["raster"]["rows"]) - 1  # only the NaN error left out; the exact zero is drawn
+    fit_points = sum(len(line.get_xdata()) for line in steps_ax.get_lines() if line.get_label() != "end of stage")
+    assert fit_points == len(data["convergence"]["steps"]) - 1
+    after = next(line for line in stage_ax.get_lines() if line.get_label() == "after the fit")
+    assert list(after.get_xdata()) == [4.0]
+    assert [t.get_text() for t in stage_ax.texts if t.xycoords == "data"] == ["2"]  # its label went with it
+
+
+def test_raster_figure_follows_the_shared_speed_knobs():
+    from dresg_addon.evaluation.report import (
+        ERROR_FLOOR,
+        QUICK_RASTER_KNOBS,
+        _knob_value_label,
+        plot_raster_error,
+        raster_table,
+    )
     from dresg_addon.raster.knobs import SPEED_KNOBS
 
     assert set(QUICK_RASTER_KNOBS) <= set(SPEED_KNOBS) and QUICK_RASTER_KNOBS[0][1] is None
-    rows = [
-        {
-            "knob": knob,
-            "value": value,
-            "rgb_error": 1e-6 * (i + 1),
-            "alpha_error": 0.0,
-            "pairs": 10,
-            "seconds": 0.01 * 2**i,
-        }
-        for i, (knob, value) in enumerate(SPEED_KNOBS)
-    ]
-    result = {"rows": rows, "camera": "48x32", "window": [0, 0, 8, 8]}
-    panel = raster_panel(result)
-    assert panel.xlog  # times spread over more than 4x
-    assert all(len(s.point_labels) == len(s.x) for s in panel.series)
-    assert plot.render_panel(panel, 400, 300).shape == (300, 400, 3)
+    result = figure_data()["raster"]
+    (ax,) = axes_grid()
+    plot_raster_error(ax, result)
+    assert ax.get_xscale() == "log" and ax.get_yscale() == "log"  # times spread over more than 4x; errors always
+    families = list(dict.fromkeys(knob for knob, _ in SPEED_KNOBS))
+    assert [text.get_text() for text in ax.get_legend().get_texts()] == families
+    assert min(min(line.get_ydata()) for line in ax.get_lines()) == ERROR_FLOOR
+    assert "exact zeros drawn at 1e-17" in " ".join(t.get_text() for t in ax.texts)
+    point_labels = [t.get_text() for t in ax.texts if t.xycoords == "data"]
+    assert point_labels == [_knob_value_label(v) for _, v in SPEED_KNOBS if v is not None]
     assert f"| {SPEED_KNOBS[0][0]} | - |" in raster_table(result)
     labels = [_knob_value_label(v) for v in (None, 64, 500_000, 8_000_000, 3.0, 2.5, "float32")]
     assert labels == ["", "64", "500k", "8M", "3", "2.5", "float32"]
+
+
+def test_work_precision_figure_has_a_panel_per_metric():
+    from dresg_addon.evaluation.report import METRIC_PANELS, plot_work_precision
+    from dresg_addon.method.config import DEFAULT_PRESET
+
+    data = figure_data()
+    axes = axes_grid(2, 2)
+    plot_work_precision(axes, data["runs"], data["unstylized"])
+    assert [ax.get_title() for ax in axes] == [title for _, title, _, _ in METRIC_PANELS]
+    for ax in axes:
+        assert ax.get_xscale() == "linear"  # 2 to 9 s: less than 20x
+        assert [t.get_text() for t in ax.get_legend().get_texts()] == [
+            f"{DEFAULT_PRESET} at F stages",
+            "presets",
+            "unstylized scene",
+        ]
+        assert {t.get_text() for t in ax.texts if t.xycoords == "data"} == {"F=1", "F=2", "preview", "paper"}
+        assert ax.get_ylim()[1] > 0.3  # the unstylized level is in view
+
+
+def test_a_failed_figure_write_is_a_write_error(tmp_path):
+    from dresg_addon.evaluation.report import draw_plots
+    from dresg_addon.util.errors import WriteError
+
+    blocker = tmp_path / "not a folder"
+    blocker.write_text("x")
+    with pytest.raises(WriteError, match="cannot write"):
+        draw_plots(figure_data(), blocker)
+    assert blocker.read_text() == "x"
 
 
 def test_window_subset_keeps_every_gaussian_that_reaches_the_window():
@@ -212,11 +224,12 @@ def test_report_command_writes_four_sections_and_plots(tmp_path):
     text = (out / "report.md").read_text()
     for heading in ("## (a) Rasterizer", "## (b) Stylization work-precision", "## (c) Convergence", "## (d) Numerical"):
         assert heading in text
-    for name in ("raster_error.png", "work_precision.png", "convergence.png"):
+    for name, shape in FIGURE_SHAPES.items():
         assert f"]({name})" in text
         image = read_image(out / name)
-        assert image.ndim == 3 and image.shape[2] == 3 and image.shape[0] > 300
+        assert image.shape == shape
         assert np.isfinite(image).all() and image.min() < 0.2 < 0.9 < image.max()  # ink on white
+    assert "matplotlib" not in text  # the figures are there: no note about them
     for row in (
         "| preview |",
         "| paper |",
@@ -245,3 +258,32 @@ def test_report_rejects_bad_options(tmp_path, capsys):
     assert "unknown preset" in capsys.readouterr().err
     assert main(["report", "--scene", str(tmp_path / "missing.ply"), "--out", str(tmp_path)]) == 2
     assert "scene file not found" in capsys.readouterr().err
+
+
+def test_report_without_matplotlib_is_written_without_figures_and_says_why(tmp_path, monkeypatch, capsys):
+    from dresg_addon.cli import main
+    from dresg_addon.evaluation.report import FIGURES_NEED_MATPLOTLIB
+    from dresg_addon.evaluation.stability import tiny_scene
+    from dresg_addon.scene.io import write_scene
+    from dresg_addon.util.imageio import write_image
+
+    write_scene(tiny_scene(100), tmp_path / "tiny.ply")
+    write_image(tmp_path / "style.png", np.random.default_rng(0).uniform(0, 1, (24, 24, 3)).astype(np.float32))
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib now fails as if not installed
+    out = tmp_path / "report"
+    code = main(
+        ["report", "--quick", "--scene", str(tmp_path / "tiny.ply"), "--styles", str(tmp_path / "style.png"),
+         "--out", str(out), "--width", "32", "--height", "24", "--views", "2", "--presets", "preview",
+         "--stage-counts", "", "--no-stability"]
+    )  # fmt: skip
+    assert code == 0
+    err = capsys.readouterr().err
+    assert "pip install .[report]" in FIGURES_NEED_MATPLOTLIB
+    assert [line for line in err.splitlines() if "matplotlib" in line] == [f"report: {FIGURES_NEED_MATPLOTLIB}"]
+    assert "Traceback" not in err
+    text = (out / "report.md").read_text()
+    assert f"- {FIGURES_NEED_MATPLOTLIB}" in text
+    for heading in ("## (a) Rasterizer", "## (b) Stylization work-precision", "## (c) Convergence", "## (d) Numerical"):
+        assert heading in text
+    assert "![" not in text and not list(out.glob("*.png"))  # no links to figures that are not there
+    assert json.loads((out / "report.json").read_text())["convergence"]["steps"]  # the data to draw them later

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from ..method.config import PRESETS
+from ._common import add_device_option, parse_device
 
 NAME = "demo"
 HELP = "Generate the built-in demo scene and style image, stylize it, and write before/after images."
@@ -27,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", choices=sorted(PRESETS), default="preview", help="stylization preset")
     parser.add_argument("--views", type=int, default=8, help="number of demo cameras")
     parser.add_argument("--seed", type=int, default=0, help="seed of the demo assets and of the run")
+    add_device_option(parser, use="where the before/after images are rendered")
 
 
 def run(args) -> int:
@@ -42,6 +44,7 @@ def run(args) -> int:
     from ..scene.io import write_scene
     from ..util.imageio import at_scale, object_window, write_image
 
+    device = parse_device(args.device)
     out = Path(args.out)
     started = time.perf_counter()
     scene = demo_scene(args.seed)
@@ -69,22 +72,24 @@ def run(args) -> int:
     )
     write_scene(result.scene, out / "stylized.ply")
     settings = RasterSettings(background=config.background)
+
+    def image(splats, camera):  # [H, W, 3] on the CPU
+        return render_scene(splats, camera, settings, device=device).rgb.cpu()
+
     for camera in cameras:
-        write_image(out / "views" / f"{camera.name}_before.png", render_scene(scene, camera, settings).rgb.numpy())
-        write_image(
-            out / "views" / f"{camera.name}_after.png", render_scene(result.scene, camera, settings).rgb.numpy()
-        )
-    base = [render_scene(scene, camera, settings) for camera in cameras]
+        write_image(out / "views" / f"{camera.name}_before.png", image(scene, camera).numpy())
+        write_image(out / "views" / f"{camera.name}_after.png", image(result.scene, camera).numpy())
+    base = [render_scene(scene, camera, settings, device=device) for camera in cameras]
     transferred = transfer_scene_colors(
         scene,
-        torch.stack([view.rgb.permute(2, 0, 1) for view in base]),
-        torch.stack([view.alpha for view in base]),
+        torch.stack([view.rgb.permute(2, 0, 1).cpu() for view in base]),
+        torch.stack([view.alpha.cpu() for view in base]),
         torch.from_numpy(np.ascontiguousarray(style.transpose(2, 0, 1))),
     )
     rows = []
     for camera in demo_cameras(scene, n=args.views, azimuth_offset_deg=180.0 / args.views)[:4]:
         large = camera.resized(2 * camera.width, 2 * camera.height)
-        columns = [render_scene(s, large, settings).rgb.numpy() for s in (scene, transferred, result.scene)]
+        columns = [image(s, large).numpy() for s in (scene, transferred, result.scene)]
         top, left = object_window(columns[0], camera.width, camera.height)
         crops = [c[top : top + camera.height, left : left + camera.width] for c in columns]
         rows.append(np.concatenate([*crops, at_scale(style, large.height, camera.width, camera.height)], 1))

@@ -20,11 +20,21 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from pathlib import Path
 
 from ..util.errors import ConfigError, NumericalError
-from .render import ORBIT_SIZE, _check_size_options, _device, _orbit_size, parse_background, parse_up
+from ._common import (
+    ORBIT_SIZE,
+    add_background_option,
+    add_device_option,
+    add_size_options,
+    add_up_option,
+    orbit_for,
+    parse_background,
+    parse_device,
+    read_cameras,
+    read_scene_noting,
+)
 
 NAME = "evaluate"
 HELP = (
@@ -53,12 +63,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"N cameras on a ring around the base scene (the default, with N = {DEFAULT_ORBIT}), "
         f"{ORBIT_SIZE[0]}x{ORBIT_SIZE[1]} unless resized",
     )
-    parser.add_argument("--up", metavar="X,Y,Z", default="0,-1,0", help="with --orbit: the world direction shown up")
-    parser.add_argument("--width", type=int, metavar="W", help="image width (alone: keeps the aspect ratio)")
-    parser.add_argument("--height", type=int, metavar="H", help="image height (alone: keeps the aspect ratio)")
-    parser.add_argument("--scale", type=float, metavar="S", help="multiply every image size by S")
+    add_up_option(parser)
+    add_size_options(parser, scale=True)
     parser.add_argument("--near", type=float, default=0.01, help="near plane of the rasterizer")
-    parser.add_argument("--background", metavar="R,G,B", default="0,0,0", help="background colour, linear 0-1")
+    add_background_option(parser)
     parser.add_argument("--log", metavar="FILE", help="the stylizer's log (JSON lines): optimisation time and memory")
     parser.add_argument("--clip", metavar="DIR", help="local transformers CLIP ViT-B/32 folder: adds CLIP-S")
     parser.add_argument("--dino", metavar="DIR", help="local transformers DINO (ViT, DINOv2) folder: adds DINO-C")
@@ -92,7 +100,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="consistency: pixels less opaque than A, in either view, are left out (default 0.5)",
     )
     parser.add_argument("--drop-invalid", action="store_true", help="drop splats with non-finite values")
-    parser.add_argument("--device", default="cpu", help="torch device: cpu, or cuda / cuda:N")
+    add_device_option(parser, use="where to render and run the CLIP / DINO models")
 
 
 def _check_options(args: argparse.Namespace) -> tuple[float, float]:
@@ -101,8 +109,6 @@ def _check_options(args: argparse.Namespace) -> tuple[float, float]:
 
     tolerance = DEPTH_TOLERANCE if args.depth_tolerance is None else args.depth_tolerance
     threshold = ALPHA_THRESHOLD if args.alpha_threshold is None else args.alpha_threshold
-    if args.orbit is not None and args.orbit < 1:
-        raise ConfigError(f"--orbit {args.orbit}: needs at least one camera")
     if not (math.isfinite(args.near) and args.near >= 0.0):
         raise ConfigError(f"--near {args.near} must be a finite number >= 0")
     for option, value, low in (
@@ -121,15 +127,6 @@ def _check_options(args: argparse.Namespace) -> tuple[float, float]:
     if args.json is not None and Path(args.json).is_dir():
         raise ConfigError(f"--json {args.json}: is a folder; give a file name")
     return tolerance, threshold
-
-
-def _read(path: str, drop_invalid: bool, label: str):
-    from ..scene.io import read_scene_detailed
-
-    result = read_scene_detailed(path, drop_invalid=drop_invalid)
-    if result.dropped:
-        print(f"note: {label}: dropped {result.dropped:,} splats with non-finite values", file=sys.stderr)
-    return result.scene
 
 
 def _render_all(scene, cameras, settings, device, label: str):
@@ -165,15 +162,12 @@ def evaluate(args: argparse.Namespace) -> dict:
     """Everything the command measures, as a JSON-ready dict (no NaN: missing values are None)."""
     from ..evaluation import metrics
     from ..raster import RasterSettings
-    from ..scene.camera_io import load_cameras
-    from ..scene.orbit import orbit_cameras
     from ..util.imageio import STYLE_MAX_SIDE, read_rgb, to_tensor
 
     tolerance, threshold = _check_options(args)
     background = parse_background(args.background)
-    up = parse_up(args.up)
-    factor = _check_size_options(args)
-    device = _device(args.device)
+    device = parse_device(args.device)
+    cameras = read_cameras(args)
     log = metrics.read_stylize_log(args.log).as_dict() if args.log else None
     if args.clip or args.dino:
         from ..evaluation.clip_dino import check_model_folder
@@ -181,15 +175,11 @@ def evaluate(args: argparse.Namespace) -> dict:
         for kind, path in (("clip", args.clip), ("dino", args.dino)):
             if path:
                 check_model_folder(path, kind)
-    cameras = None
-    if args.cameras is not None:
-        cameras = load_cameras(args.cameras, factor=factor, width=args.width, height=args.height)
     style = to_tensor(read_rgb(args.style, max_side=STYLE_MAX_SIDE))
-    stylized = _read(args.stylized, args.drop_invalid, "stylized scene")
-    base = _read(args.base, args.drop_invalid, "base scene")
+    stylized = read_scene_noting(args.stylized, args.drop_invalid, "stylized scene")
+    base = read_scene_noting(args.base, args.drop_invalid, "base scene")
     if cameras is None:
-        width, height = _orbit_size(args)
-        cameras = orbit_cameras(base, args.orbit or DEFAULT_ORBIT, width=width, height=height, up=up)
+        cameras = orbit_for(args, base, DEFAULT_ORBIT)
     small = [c for c in cameras if min(c.width, c.height) < args.patch]
     if small:
         raise ConfigError(f"camera {small[0].name!r} is {small[0].width}x{small[0].height}, smaller than a patch")

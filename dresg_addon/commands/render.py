@@ -27,15 +27,21 @@ from pathlib import Path
 import numpy as np
 
 from ..scene.camera import Camera
-from ..scene.camera_io import load_cameras
-from ..scene.io import read_scene_detailed
-from ..scene.orbit import orbit_cameras
 from ..util.errors import ConfigError
+from ._common import (
+    ORBIT_SIZE,
+    add_background_option,
+    add_device_option,
+    add_size_options,
+    add_up_option,
+    load_scene_and_cameras,
+    parse_background,
+    parse_device,
+)
 
 NAME = "render"
 HELP = "Render a scene from its cameras (cameras.json, COLMAP, LLFF) or an orbit, one image per camera."
 
-ORBIT_SIZE = (448, 320)  # the proposal resolution
 _EXTENSION = re.compile(r"\.[A-Za-z][A-Za-z0-9]{0,4}$")
 
 
@@ -55,13 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"render N cameras on a ring around the scene's robust bounds instead (50 degree horizontal field "
         f"of view, {ORBIT_SIZE[0]}x{ORBIT_SIZE[1]} unless resized), named orbit_000, orbit_001, ...",
     )
-    parser.add_argument(
-        "--up",
-        metavar="X,Y,Z",
-        default="0,-1,0",
-        help="with --orbit: the world direction shown up in the images (COLMAP/graphdeco worlds are y-down: "
-        "0,-1,0; y-up scenes: 0,1,0; z-up: 0,0,1)",
-    )
+    add_up_option(parser)
     parser.add_argument("--out", metavar="DIR", required=True, help="output folder, created if missing")
     parser.add_argument(
         "--format",
@@ -73,12 +73,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--near", type=float, default=0.01, help="near plane: splats at camera depth <= NEAR are not drawn"
     )
-    parser.add_argument(
-        "--background",
-        metavar="R,G,B",
-        default="0,0,0",
-        help="background colour behind the splats, linear, 0-1 per channel (one value gives a grey)",
-    )
+    add_background_option(parser)
     parser.add_argument(
         "--depth",
         action="store_true",
@@ -90,63 +85,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="also write NAME_alpha.<format>: the coverage (1 - final transmittance), one channel",
     )
-    parser.add_argument(
-        "--width",
-        type=int,
-        metavar="W",
-        help="image width; the cameras' intrinsics are scaled to match (alone: keeps the aspect ratio)",
-    )
-    parser.add_argument(
-        "--height",
-        type=int,
-        metavar="H",
-        help="image height; the cameras' intrinsics are scaled to match (alone: keeps the aspect ratio)",
-    )
-    parser.add_argument(
-        "--scale",
-        type=float,
-        metavar="S",
-        help="multiply every image size by S (0.5: half resolution); not with --width/--height",
-    )
+    add_size_options(parser, scale=True)
     parser.add_argument(
         "--drop-invalid",
         action="store_true",
         help="drop splats with non-finite values (NaN/Inf) instead of refusing the scene; says how many",
     )
-    parser.add_argument(
-        "--device",
-        default="cpu",
-        help="torch device to render on: cpu, or cuda / cuda:N where a CUDA build of torch sees a GPU",
-    )
-
-
-def _numbers(option: str, text: str, example: str, counts: tuple[int, ...] = (3,)) -> list[float]:
-    try:
-        values = [float(part) for part in str(text).split(",")]
-    except ValueError:
-        raise ConfigError(f"{option} {text!r}: expected comma-separated numbers such as {example}") from None
-    if len(values) not in counts:
-        raise ConfigError(f"{option} {text!r}: expected {' or '.join(map(str, counts))} numbers, got {len(values)}")
-    if not all(math.isfinite(v) for v in values):
-        raise ConfigError(f"{option} {text!r}: values must be finite")
-    return values
-
-
-def parse_background(text: str) -> tuple[float, float, float]:
-    """``'R,G,B'`` (or one value for a grey) -> three finite non-negative floats; ``ConfigError`` otherwise."""
-    values = _numbers("--background", text, "0,0,0 or 1,1,1", counts=(1, 3))
-    if min(values) < 0.0:
-        raise ConfigError(f"--background {text!r}: values must be non-negative")
-    r, g, b = values * 3 if len(values) == 1 else values
-    return r, g, b
-
-
-def parse_up(text: str) -> tuple[float, float, float]:
-    """``'X,Y,Z'`` -> a non-zero finite direction; ``ConfigError`` otherwise."""
-    x, y, z = _numbers("--up", text, "0,-1,0")
-    if x == y == z == 0.0:
-        raise ConfigError(f"--up {text!r}: the direction must not be zero")
-    return x, y, z
+    add_device_option(parser)
 
 
 def output_stems(cameras: list[Camera]) -> list[str]:
@@ -170,51 +115,6 @@ def output_stems(cameras: list[Camera]) -> list[str]:
     return stems
 
 
-def _check_size_options(args: argparse.Namespace) -> float | None:
-    """The downscale factor for ``load_cameras`` (1 / scale), after checking the size options."""
-    if args.scale is not None and (args.width is not None or args.height is not None):
-        raise ConfigError("give either --scale or --width/--height, not both")
-    for label, value in (("--width", args.width), ("--height", args.height)):
-        if value is not None and value < 1:
-            raise ConfigError(f"{label} {value} must be at least 1")
-    if args.scale is None:
-        return None
-    if not (math.isfinite(args.scale) and args.scale > 0):
-        raise ConfigError(f"--scale {args.scale} must be a positive number")
-    return 1.0 / args.scale
-
-
-def _orbit_size(args: argparse.Namespace) -> tuple[int, int]:
-    base_w, base_h = ORBIT_SIZE
-    if args.scale is not None:
-        size = (round(base_w * args.scale), round(base_h * args.scale))
-    elif args.width is not None and args.height is not None:
-        size = (args.width, args.height)
-    elif args.width is not None:
-        size = (args.width, round(args.width * base_h / base_w))
-    elif args.height is not None:
-        size = (round(args.height * base_w / base_h), args.height)
-    else:
-        size = ORBIT_SIZE
-    if min(size) < 1:
-        raise ConfigError(f"orbit image size {size[0]}x{size[1]} is empty")
-    return size
-
-
-def _device(name: str):
-    import torch
-
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise ConfigError(f"--device {name!r} is not a torch device (use cpu or cuda)") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"--device {name}: this torch build sees no CUDA GPU; use --device cpu")
-    if device.type not in ("cpu", "cuda"):
-        raise ConfigError(f"--device {name}: only cpu and cuda are supported")
-    return device
-
-
 def _output_dir(path: str) -> Path:
     out = Path(path)
     if out.exists() and not out.is_dir():
@@ -234,22 +134,8 @@ def run(args: argparse.Namespace) -> int:
     background = parse_background(args.background)
     if not (math.isfinite(args.near) and args.near >= 0.0):
         raise ConfigError(f"--near {args.near} must be a finite number >= 0")
-    up = parse_up(args.up)
-    factor = _check_size_options(args)
-    device = _device(args.device)
-    if args.orbit is not None:
-        if args.orbit < 1:
-            raise ConfigError(f"--orbit {args.orbit}: needs at least one camera")
-        orbit_size = _orbit_size(args)
-    else:
-        cameras = load_cameras(args.cameras, factor=factor, width=args.width, height=args.height)
-
-    result = read_scene_detailed(args.scene, drop_invalid=args.drop_invalid)
-    if result.dropped:
-        print(f"note: dropped {result.dropped:,} splats with non-finite values", file=sys.stderr)
-    scene = result.scene
-    if args.orbit is not None:
-        cameras = orbit_cameras(scene, args.orbit, width=orbit_size[0], height=orbit_size[1], up=up)
+    device = parse_device(args.device)
+    scene, cameras = load_scene_and_cameras(args)
     out_dir = _output_dir(args.out)
     settings = RasterSettings(near=args.near, background=background)
     ext = args.format

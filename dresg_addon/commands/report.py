@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ._common import add_size_options, check_size_options, orbit_size
+
 NAME = "report"
 HELP = (
     "Write a Markdown report with PNG plots: rasterizer error against time, stylization metrics against time "
@@ -41,8 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--quick", action="store_true", help="shrink every budget (about a minute or two; numbers are indicative)"
     )
-    parser.add_argument("--width", type=int, metavar="W", help="orbit camera width (quick 112, full 224)")
-    parser.add_argument("--height", type=int, metavar="H", help="orbit camera height (quick 80, full 160)")
+    add_size_options(parser, unset="quick 112x80, full 224x160")
     parser.add_argument("--views", type=int, metavar="N", help="orbit cameras (quick 4, full 8)")
     parser.add_argument("--presets", metavar="A,B", help="presets to run, comma-separated; all when not given")
     parser.add_argument(
@@ -57,6 +58,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_size_options(args)
+    width, height = args.width, args.height
+    if (width is None) != (height is None):  # the report's sizes (112x80, 224x160) have the orbit aspect ratio
+        width, height = orbit_size(args)
     from ..evaluation.report import ReportOptions, build_report
 
     presets = None if args.presets is None else tuple(p.strip() for p in args.presets.split(",") if p.strip())
@@ -65,8 +70,8 @@ def run(args: argparse.Namespace) -> int:
         scene=args.scene,
         styles=tuple(args.styles or ()),
         quick=args.quick,
-        width=args.width,
-        height=args.height,
+        width=width,
+        height=height,
         views=args.views,
         presets=presets,
         stage_counts=args.stage_counts,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from ._common import add_scene_and_cameras, load_scene_and_cameras
+from ._common import add_device_option, add_scene_and_cameras, load_scene_and_cameras, parse_device
 
 NAME = "select-views"
 HELP = "Choose active views by capped Gaussian coverage (Sec. 4.3) and print them with their coverage."
@@ -19,12 +19,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--coverage-stop", type=float, default=0.9999, help="stop at this total coverage")
     parser.add_argument("--gain-threshold", type=float, default=0.001, help="stop when a view adds less than this")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
+    add_device_option(parser, use="where the coverage renders run")
 
 
 def run(args) -> int:
     from ..method.config import StylizeConfig
     from ..method.views import select_active_views
 
+    device = parse_device(args.device)
     scene, cameras = load_scene_and_cameras(args)
     config = StylizeConfig(
         max_views=args.max_views,
@@ -33,7 +35,7 @@ def run(args) -> int:
         coverage_stop=args.coverage_stop,
         gain_threshold=args.gain_threshold,
     )
-    chosen = select_active_views(scene, cameras, config)
+    chosen = select_active_views(scene, cameras, config, device=device)
     names = [c.name or f"view_{i:03d}" for i, c in enumerate(cameras)]
     if args.json:
         print(json.dumps({

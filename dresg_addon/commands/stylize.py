@@ -10,7 +10,14 @@ from pathlib import Path
 
 from ..method.config import COLOR_FITS, DEFAULT_PRESET, PRESETS, PROPOSALS, SCHEDULES, SH_REST_MODES, preset
 from ..util.errors import ConfigError, WriteError
-from ._common import add_scene_and_cameras, load_scene_and_cameras, parse_background
+from ._common import (
+    add_background_option,
+    add_device_option,
+    add_scene_and_cameras,
+    load_scene_and_cameras,
+    parse_background,
+    parse_device,
+)
 
 NAME = "stylize"
 HELP = "Stylize a 3DGS scene after a style image (DReSG) and write the stylized scene."
@@ -103,7 +110,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-geometry", dest="geometry", action="store_false", help="freeze geometry (colour-only fast path)"
     )
     parser.add_argument("--views", metavar="I,J,...", help="use these camera indices as active views (skip selection)")
-    parser.add_argument("--background", metavar="R,G,B", help="background colour in [0, 1] (default 0,0,0)")
+    add_background_option(parser)
+    add_device_option(
+        parser,
+        use="where the networks run (sd15 proposals, DINO features); the rasterizer and the colour fit run on "
+        "the CPU. Without it, sd15 takes the GPU when there is one and DINO the CPU",
+        default=None,
+    )
     for flag, _, kind, text in KNOBS:
         parser.add_argument(flag, type=kind, help=text)
     for flag, _, text in SWITCHES:
@@ -156,8 +169,7 @@ def config_from_args(args):
             overrides[field] = getattr(args, name)
     if args.geometry is not None:
         overrides["optimize_geometry"] = args.geometry
-    if args.background:
-        overrides["background"] = parse_background(args.background)
+    overrides["background"] = parse_background(args.background)
     if args.proposal_size:
         try:
             width, height = (int(v) for v in args.proposal_size.lower().split("x"))
@@ -228,6 +240,7 @@ def run(args) -> int:
 
     config = config_from_args(args)
     check_run_settings(config)
+    device = None if args.device is None else parse_device(args.device)
     style = read_rgb(args.style, max_side=STYLE_MAX_SIDE)  # before the scene, so a bad style path fails at once
     scene, cameras = load_scene_and_cameras(args)
     views = None
@@ -248,7 +261,9 @@ def run(args) -> int:
         on_cpu = not torch.cuda.is_available()
     else:
         on_cpu = False
-    if on_cpu and config.proposal == "sd15":
+    # --device decides where sd15 runs; without it sd15 takes the GPU when there is one.
+    sd15_on_cpu = on_cpu if device is None else not args.quiet and device.type == "cpu"
+    if sd15_on_cpu and config.proposal == "sd15":
         from ..method.proposal.sd15 import estimate_cpu_seconds
 
         estimate = estimate_cpu_seconds(
@@ -295,6 +310,7 @@ def run(args) -> int:
         messages=messages,
         strength=args.strength,
         mask=mask,
+        device=device,
     )
     try:
         write_scene(result.scene, out)

@@ -3,6 +3,6 @@
 ``metrics`` (pure functions: style distances, SSIM and gradient structure to the base render,
 cross-view consistency by exact warps, render speed, the run log's time and memory), ``clip_dino``
 (the paper's CLIP-S and DINO-C from local weights), ``report`` (the Markdown report with plots of error
-against run time), ``plot`` (those plots, with no plotting library), and ``stability`` (stiff and
-extreme inputs through every stage). May import ``method``, ``raster``, ``scene`` and ``util``.
+against run time, drawn with matplotlib when it is installed), and ``stability`` (stiff and extreme inputs
+through every stage). May import ``method``, ``raster``, ``scene`` and ``util``.
 """

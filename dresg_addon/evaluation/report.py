@@ -1,6 +1,7 @@
 """Error against run time, convergence and numerical stability: ``python -m dresg_addon report``.
 
-Writes ``report.md`` and PNG plots (drawn by :mod:`.plot`) into one folder:
+Writes ``report.md`` and PNG plots into one folder. The plots are drawn with matplotlib, an optional extra
+(``pip install .[report]``); without it the report is written without them and says so in one line.
 
 (a) ``raster_error.png``: the fast rasterizer's max error against the float64 reference renderer
     (:mod:`dresg_addon.raster.reference`) against its forward time, one point per speed-knob setting of
@@ -313,34 +314,34 @@ def rasterizer_error_vs_time(
     }
 
 
-def raster_panel(result: dict):
-    from .plot import MARKERS, Panel, Series
-
+def plot_raster_error(ax, result: dict) -> None:
+    """(a) on ``ax``: per knob, the max rgb error against the forward time, one marker per setting."""
     times = [r["seconds"] for r in result["rows"] if r["seconds"] > 0]
-    panel = Panel(
-        "Rasterizer: error against the float64 reference",
-        "forward time of the full image (s)",
-        "max |rgb - reference| on the window",
-        xlog=bool(times) and max(times) > 4 * min(times),
-        ylog=True,
-        note=f"{result['camera']} image, {result['window'][2]}x{result['window'][3]} reference window"
-        + (f"; exact zeros drawn at {ERROR_FLOOR:g}" if any(r["rgb_error"] == 0 for r in result["rows"]) else ""),
-    )
+    if times and max(times) > 4 * min(times):
+        ax.set_xscale("log")
+    ax.set_yscale("log")
     families = {}
     for row in result["rows"]:
         families.setdefault(row["knob"], []).append(row)
     for i, (knob, rows) in enumerate(families.items()):
-        panel.series.append(  # in the order of the knob's values: a curve along the setting
-            Series(
-                [r["seconds"] for r in rows],
-                [max(r["rgb_error"], ERROR_FLOOR) for r in rows],
-                knob,
-                marker=MARKERS[i % len(MARKERS)],
-                line=len(rows) > 1,
-                point_labels=[_knob_value_label(r["value"]) for r in rows],
-            )
+        _series(  # in the order of the knob's values: a curve along the setting
+            ax,
+            [r["seconds"] for r in rows],
+            [max(r["rgb_error"], ERROR_FLOOR) for r in rows],
+            [_knob_value_label(r["value"]) for r in rows],
+            label=knob,
+            marker=FIGURE_MARKERS[i % len(FIGURE_MARKERS)],
+            linestyle="-" if len(rows) > 1 else "none",
         )
-    return panel
+    zeros = any(r["rgb_error"] == 0 for r in result["rows"])
+    _decorate(
+        ax,
+        "Rasterizer: error against the float64 reference",
+        "forward time of the full image (s)",
+        "max |rgb - reference| on the window",
+        f"{result['camera']} image, {result['window'][2]}x{result['window'][3]} reference window"
+        + (f"; exact zeros drawn at {ERROR_FLOOR:g}" if zeros else ""),
+    )
 
 
 def _knob_value_label(value) -> str:
@@ -576,55 +577,43 @@ METRIC_PANELS = (
 )
 
 
-def work_precision_panels(rows: list[dict], base: dict):
-    from .plot import Panel, Series
-
+def plot_work_precision(axes, rows: list[dict], base: dict) -> None:
+    """(b) on four ``axes``, one per metric of :data:`METRIC_PANELS`: the stage-count curve, the presets
+    and the unstylized scene's level, against the stylization's wall time."""
     times = [r["seconds"] for r in rows]
     xlog = bool(times) and max(times) > 20 * max(min(times), 1e-9)
-    panels = []
-    for key, title, ylabel, note in METRIC_PANELS:
-        panel = Panel(title, "stylization wall time (s)", ylabel, xlog=xlog, note=note)
+    for ax, (key, title, ylabel, note) in zip(axes, METRIC_PANELS):
+        if xlog:
+            ax.set_xscale("log")
         presets = [r for r in rows if r["group"] == "preset" and r[key] is not None]
         stages = sorted(
             (r for r in rows if r["group"] == "stages" and r[key] is not None), key=lambda r: r["config"]["stages"]
         )
         if stages:
-            panel.series.append(
-                Series(
-                    [r["seconds"] for r in stages],
-                    [r[key] for r in stages],
-                    f"{DEFAULT_PRESET} at F stages",
-                    marker="^",
-                    point_labels=[r["label"].replace("stages ", "F=") for r in stages],
-                )
+            _series(
+                ax,
+                [r["seconds"] for r in stages],
+                [r[key] for r in stages],
+                [r["label"].replace("stages ", "F=") for r in stages],
+                label=f"{DEFAULT_PRESET} at F stages",
+                color="C0",
+                marker="^",
             )
         if presets:
-            panel.series.append(
-                Series(
-                    [r["seconds"] for r in presets],
-                    [r[key] for r in presets],
-                    "presets",
-                    color=(0.839, 0.153, 0.157),
-                    line=False,
-                    marker="o",
-                    marker_size=5.0,
-                    point_labels=[r["label"] for r in presets],
-                )
+            _series(
+                ax,
+                [r["seconds"] for r in presets],
+                [r[key] for r in presets],
+                [r["label"] for r in presets],
+                label="presets",
+                color="C3",
+                linestyle="none",
+                marker="o",
+                markersize=8,
             )
-        if base.get(key) is not None and times:
-            lo, hi = min(times), max(times)
-            panel.series.append(
-                Series(
-                    [lo, hi],
-                    [base[key], base[key]],
-                    "unstylized scene",
-                    color=(0.5, 0.5, 0.5),
-                    marker=None,
-                    line_width=1.0,
-                )
-            )
-        panels.append(panel)
-    return panels
+        if base.get(key) is not None and math.isfinite(base[key]):
+            ax.axhline(base[key], color="0.5", linewidth=1.0, label="unstylized scene")
+        _decorate(ax, title, "stylization wall time (s)", ylabel, note)
 
 
 def work_precision_table(rows: list[dict], base: dict) -> str:
@@ -664,59 +653,56 @@ def convergence_run(records: list[RunRecord]) -> RunRecord | None:
     return max(records, key=lambda r: (r.config.stages * r.config.fit_steps + r.config.post_steps, -records.index(r)))
 
 
-def convergence_panels(steps: list, log: list[dict]):
-    """Fit loss per step (``steps``: (seconds, stage, step, loss)) and per stage (the stylize ``log``)."""
-    from .plot import PALETTE, Panel, Series
-
+def plot_convergence(axes, steps: list, log: list[dict]) -> None:
+    """(c) on two ``axes``: the fit loss per step (``steps``: (seconds, stage, step, loss)) and per stage
+    (the stylize ``log``)."""
+    steps_ax, stage_ax = axes
     fit = [s for s in steps if s[1] != "post"]
     post = [s for s in steps if s[1] == "post"]
     losses = [s[3] for s in steps if math.isfinite(s[3]) and s[3] > 0]
-    ylog = bool(losses) and max(losses) > 8 * min(losses)
-    steps_panel = Panel(
-        "Fit error of every fit step", "time since the start of stylize (s)", "RMSE (solve) or Eq. 16 (Adam)",
-        ylog=ylog, note="each stage fits a new target: the error jumps at stage starts",
-    )  # fmt: skip
-    blue = PALETTE[0]
+    if losses and max(losses) > 8 * min(losses):
+        steps_ax.set_yscale("log")
+        stage_ax.set_yscale("log")
     ends = []
     for i, stage in enumerate(dict.fromkeys(s[1] for s in fit)):
-        # One polyline per stage: the proposal phase between stages has no fit steps to join.
+        # One line per stage: the proposal phase between stages has no fit steps to join.
         own = [s for s in fit if s[1] == stage]
         ends.append(own[-1])
-        label = "fit steps" if i == 0 else ""
-        steps_panel.series.append(Series([s[0] for s in own], [s[3] for s in own], label, color=blue, marker=None))
-    steps_panel.series.append(
-        Series(
-            [s[0] for s in ends],
-            [s[3] for s in ends],
-            "end of stage",
-            color=PALETTE[1],
-            line=False,
-            point_labels=[str(s[1]) for s in ends] if len(ends) <= 12 else None,
-        )
+        label = "fit steps" if i == 0 else "_nolegend_"
+        _series(steps_ax, [s[0] for s in own], [s[3] for s in own], label=label, color="C0")
+    _series(
+        steps_ax,
+        [s[0] for s in ends],
+        [s[3] for s in ends],
+        [str(s[1]) for s in ends] if len(ends) <= 12 else None,
+        label="end of stage",
+        color="C1",
+        linestyle="none",
+        marker="o",
     )
     if post:
-        steps_panel.series.append(
-            Series([s[0] for s in post], [s[3] for s in post], "post stage", color=PALETTE[2], marker=None)
-        )
+        _series(steps_ax, [s[0] for s in post], [s[3] for s in post], label="post stage", color="C2")
+    _decorate(
+        steps_ax, "Fit error of every fit step", "time since the start of stylize (s)", "RMSE (solve) or Eq. 16 (Adam)",
+        "each stage fits a new target: the error jumps at stage starts",
+    )  # fmt: skip
     # Each stage's gap to its own targets before the fit and what the fit left of it (RMSE over covered pixels).
     stages = [e for e in log if e.get("target_gap") is not None]
-    stage_panel = Panel(
-        "Distance to each stage's targets", "end of the stage (s)", "RMSE, covered pixels", ylog=ylog,
-        note="before the stage's fit (target gap) and after it (fit residual)",
+    seconds = [e["seconds"] for e in stages]
+    _series(stage_ax, seconds, [e["target_gap"] for e in stages], label="before the fit", color="C0", marker="s")
+    _series(
+        stage_ax,
+        seconds,
+        [e["fit_residual"] for e in stages],
+        [str(e["stage"]) for e in stages] if len(stages) <= 12 else None,
+        label="after the fit",
+        color="C1",
+        marker="o",
+    )
+    _decorate(
+        stage_ax, "Distance to each stage's targets", "end of the stage (s)", "RMSE, covered pixels",
+        "before the stage's fit (target gap) and after it (fit residual)",
     )  # fmt: skip
-    stage_panel.series.append(
-        Series([e["seconds"] for e in stages], [e["target_gap"] for e in stages], "before the fit", marker="s")
-    )
-    stage_panel.series.append(
-        Series(
-            [e["seconds"] for e in stages],
-            [e["fit_residual"] for e in stages],
-            "after the fit",
-            marker="o",
-            point_labels=[str(e["stage"]) for e in stages] if len(stages) <= 12 else None,
-        )
-    )
-    return [steps_panel, stage_panel]
 
 
 def convergence_table(log: list[dict]) -> str:
@@ -738,20 +724,108 @@ def convergence_table(log: list[dict]) -> str:
 
 
 # ----------------------------------------------------------------------------------------------------
-# The whole report
+# Figures: matplotlib, an optional extra (imported only here, drawing on Agg canvases: no pyplot, no global backend)
+
+FIGURES_NEED_MATPLOTLIB = "figures left out: they need matplotlib (pip install .[report])"
+FIGURE_DPI = 100  # panel sizes below are in pixels
+FIGURE_MARKERS = ("o", "s", "^", "D", "v")
+
+
+def matplotlib_available() -> bool:
+    """Whether the figures can be drawn; without matplotlib the report is written without them."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _series(ax, xs, ys, point_labels=None, **style) -> None:
+    """Plot one series on ``ax`` (its scales already set), with each of ``point_labels`` beside its point.
+
+    Points that cannot be drawn are left out: None, NaN or Inf, and values <= 0 on a log axis, so no
+    non-finite value reaches an image and the line joins the points on either side.
+    """
+    xlog, ylog = ax.get_xscale() == "log", ax.get_yscale() == "log"
+    labels = point_labels or [""] * len(xs)
+    points = [
+        (float(x), float(y), text)
+        for x, y, text in zip(xs, ys, labels)
+        if x is not None
+        and y is not None
+        and math.isfinite(x)
+        and math.isfinite(y)
+        and (x > 0 or not xlog)
+        and (y > 0 or not ylog)
+    ]
+    (line,) = ax.plot([p[0] for p in points], [p[1] for p in points], **style)
+    for x, y, text in points:
+        if text:
+            ax.annotate(text, (x, y), xytext=(5, 4), textcoords="offset points", fontsize=8, color=line.get_color())
+
+
+def _decorate(ax, title: str, xlabel: str, ylabel: str, note: str) -> None:
+    """Title with a small grey ``note`` under it, axis labels, grid, and a legend where it hides least."""
+    ax.set_title(title, fontsize=11, pad=16)
+    ax.annotate(
+        note, (0.5, 1.0), xycoords="axes fraction", xytext=(0, 5), textcoords="offset points",
+        ha="center", va="bottom", fontsize=8, color="0.35",
+    )  # fmt: skip
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(True, color="0.88")
+    ax.set_axisbelow(True)
+    # Point labels in the right fifth go left of their point, so that they stay inside the figure.
+    ax.get_xlim()  # settles the autoscaled limits that the transform below uses
+    data_to_axes = ax.transScale + ax.transLimits
+    for label in ax.texts:
+        if label.xycoords == "data" and data_to_axes.transform(label.xy)[0] > 0.8:
+            label.set_horizontalalignment("right")
+            label.xyann = (-5, 4)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best", fontsize=8)
+
+
+def _figure(columns: int, rows: int, panel_size: tuple[int, int]):
+    """A figure of ``rows`` x ``columns`` panels of ``panel_size`` pixels each, and its axes row by row."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    width, height = panel_size
+    figure = Figure(figsize=(columns * width / FIGURE_DPI, rows * height / FIGURE_DPI), dpi=FIGURE_DPI)
+    figure.set_layout_engine("constrained")
+    FigureCanvasAgg(figure)
+    return figure, list(figure.subplots(rows, columns, squeeze=False).ravel())
+
+
+def _save_figure(figure, path: Path) -> None:
+    """Render ``figure`` and write it as an 8-bit RGB PNG through :func:`~dresg_addon.util.imageio.write_image`:
+    atomic, and a full disk raises WriteError with the old file kept. The figure belongs to no pyplot
+    state, so dropping it frees it: there is nothing to close."""
+    from ..util.imageio import write_image
+
+    figure.canvas.draw()
+    rgba = np.asarray(figure.canvas.buffer_rgba())
+    write_image(path, rgba[..., :3].astype(np.float32) / 255.0)
 
 
 def draw_plots(data: dict, out: Path) -> None:
-    """The report's PNGs from its measured data (what ``report.json`` holds), into ``out``."""
-    from .plot import render_figure, save_png
-
+    """The report's PNGs from its measured data (what ``report.json`` holds), into ``out``; needs matplotlib."""
     out = Path(out)
-    save_png(out / "raster_error.png", render_figure([raster_panel(data["raster"])], 1, (760, 480)))
-    panels = work_precision_panels(data["runs"], data["unstylized"])
-    save_png(out / "work_precision.png", render_figure(panels, 2, (560, 400)))
+    figure, axes = _figure(1, 1, (760, 480))
+    plot_raster_error(axes[0], data["raster"])
+    _save_figure(figure, out / "raster_error.png")
+    figure, axes = _figure(2, 2, (560, 400))
+    plot_work_precision(axes, data["runs"], data["unstylized"])
+    _save_figure(figure, out / "work_precision.png")
     if data.get("convergence"):
-        panels = convergence_panels(data["convergence"]["steps"], data["convergence"]["log"])
-        save_png(out / "convergence.png", render_figure(panels, 2, (560, 400)))
+        figure, axes = _figure(2, 1, (560, 400))
+        plot_convergence(axes, data["convergence"]["steps"], data["convergence"]["log"])
+        _save_figure(figure, out / "convergence.png")
+
+
+# ----------------------------------------------------------------------------------------------------
+# The whole report
 
 
 def build_report(options: ReportOptions, say: Callable[[str], None] | None = None) -> Path:
@@ -764,6 +838,14 @@ def build_report(options: ReportOptions, say: Callable[[str], None] | None = Non
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     machine = machine_description()
+    figures = matplotlib_available()
+    if not figures:
+        say(f"report: {FIGURES_NEED_MATPLOTLIB}")
+
+    def figure(caption: str, name: str) -> list[str]:
+        """The Markdown of one figure (the caption says what it shows), or nothing when figures are left out."""
+        return [f"![{caption}]({name})", ""] if figures else []
+
     inputs = load_inputs(options)
     say(f"report: {inputs.scene_label}, {len(inputs.cameras)} views at {options.width}x{options.height}")
     lines = [
@@ -775,6 +857,7 @@ def build_report(options: ReportOptions, say: Callable[[str], None] | None = Non
         f"- scene: {inputs.scene_label}; {len(inputs.cameras)} orbit cameras at {options.width}x{options.height} to "
         f"stylize from, {len(inputs.eval_cameras)} novel views between them to evaluate on",
         f"- styles: {', '.join(name for name, _ in inputs.styles)}",
+        *([] if figures else [f"- {FIGURES_NEED_MATPLOTLIB}"]),
         "",
     ]
 
@@ -797,8 +880,7 @@ def build_report(options: ReportOptions, say: Callable[[str], None] | None = Non
         + (f"the fastest of {options.repeats} forward renders" if options.repeats > 1 else "one forward render")
         + " of the full image (no gradients), after a warm-up render.",
         "",
-        "![rasterizer error against time](raster_error.png)",
-        "",
+        *figure("rasterizer error against time", "raster_error.png"),
         raster_table(raster),
         "",
     ]
@@ -821,8 +903,7 @@ def build_report(options: ReportOptions, say: Callable[[str], None] | None = Non
         "Consistency: the stylized view i warped into view i + gap with rendered depth and the known poses, "
         "masked RMSE.",
         "",
-        "![metrics against time](work_precision.png)",
-        "",
+        *figure("metrics against time", "work_precision.png"),
         work_precision_table(rows, base),
         "",
     ]
@@ -840,8 +921,7 @@ def build_report(options: ReportOptions, say: Callable[[str], None] | None = Non
             "with the joint least-squares optimum of those targets and the share of the gap closed, against "
             "the time since the start of stylize (from its log and progress reports).",
             "",
-            "![fit error against time](convergence.png)",
-            "",
+            *figure("fit error against time", "convergence.png"),
             convergence_table(chosen.log),
             "",
         ]
@@ -849,7 +929,8 @@ def build_report(options: ReportOptions, say: Callable[[str], None] | None = Non
         lines += ["No stylization run was requested.", ""]
     data = {"raster": raster, "runs": rows, "unstylized": base, "convergence": convergence}
     atomic_write_bytes(out / "report.json", (json.dumps(data, indent=1, allow_nan=False) + "\n").encode("utf-8"))
-    draw_plots(data, out)
+    if figures:
+        draw_plots(data, out)
 
     # (d)
     lines += ["## (d) Numerical stability", ""]

@@ -14,7 +14,8 @@ FEATURE_SIZE = 224  # the release's DINO input size
 
 
 class DinoFeatures:
-    """images [B, 3, H, W] in [0, 1] -> patch-token feature maps [B, C, h, w] (CLS dropped)."""
+    """images [B, 3, H, W] in [0, 1] -> patch-token feature maps [B, C, h, w] (CLS dropped), on the images' device
+    whatever the model's."""
 
     def __init__(self, path, device="cpu"):
         self.model = load_dino(path, device)
@@ -26,4 +27,4 @@ class DinoFeatures:
         tokens = self.model.model(pixel_values=pixels).last_hidden_state  # [B, 1 (+ registers) + h*w, C]
         side = pixels.shape[-1] // self.model.model.config.patch_size
         patches = tokens[:, -side * side :]
-        return patches.transpose(1, 2).reshape(tokens.shape[0], -1, side, side).float()
+        return patches.transpose(1, 2).reshape(tokens.shape[0], -1, side, side).float().to(images.device)

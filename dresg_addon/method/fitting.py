@@ -183,15 +183,16 @@ class ViewRenderer:
         return LinearViews(maps, constants)
 
 
-def feature_extractor(weight: float, dino_path: str, say: Callable[[str], None]):
-    """The fit loss's feature term: DINO when local weights are given, else the weight-free patch features."""
+def feature_extractor(weight: float, dino_path: str, say: Callable[[str], None], device="cpu"):
+    """The fit loss's feature term: DINO (on ``device``) when local weights are given, else the weight-free
+    patch features."""
     if weight <= 0:
         return None
     if dino_path:
         from .dino import DinoFeatures
 
         say(f"feature loss: DINO from {dino_path}")
-        return DinoFeatures(dino_path)
+        return DinoFeatures(dino_path, device)
     say("feature loss: weight-free patch features (no DINO weights given)")
     return losses.patch_feature_maps
 

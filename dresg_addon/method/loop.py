@@ -84,6 +84,7 @@ def stylize(
     messages: Callable[[str], None] | None = None,
     strength: float = 1.0,
     mask: np.ndarray | None = None,  # [N] bool, or the indices of the splats to stylize
+    device: str | torch.device | None = None,  # where the networks run (sd15, DINO); None: sd15's GPU, DINO's CPU
 ) -> StylizeResult:
     """Algorithm 1 of the paper, returning the stylized scene (the input is never modified).
 
@@ -91,7 +92,8 @@ def stylize(
     ``strength`` in [0, 1] blends the result's colours with the input's (1: fully stylized); it is applied
     to the result only, so a run resumed at another strength reuses its checkpoint. ``mask`` stylizes a
     selection: only those splats are optimised (and count for view selection), every other one comes back
-    bit-identical. Deterministic for ``config.seed`` on the CPU.
+    bit-identical. ``device`` is where the networks run (the sd15 proposals, DINO features); the rasterizer
+    and the colour fit run on the CPU. Deterministic for ``config.seed`` on the CPU.
     """
     if not (math.isfinite(strength) and 0.0 <= strength <= 1.0):
         raise ConfigError(f"invalid setting: strength must be in [0, 1] (got {strength})")
@@ -99,7 +101,7 @@ def stylize(
     mask = selection_mask(mask, len(scene), config)
     hooks = RunHooks(progress, on_stage, cancel, messages)
     record = RunRecord(checkpoint_dir, log_path, save_views_dir)
-    run = Stylization(scene, style_rgb, config, hooks, record, mask)
+    run = Stylization(scene, style_rgb, config, hooks, record, mask, device)
     run.select_views(cameras, views)  # Sec. 4.3, Eqs. 13-15: active views by capped coverage
     run.prepare(content_images)  # seen Gaussians, base renders, content views, proposal states
     for stage in run.remaining_stages():  # Sec. 4.2: the DDIM states in stages, gamma_n per stage
@@ -151,14 +153,15 @@ def stage_improvement(distances: Sequence[float], window: int = EARLY_STOP_WINDO
     return (distances[-1 - window] - distances[-1]) / distances[-1 - window]
 
 
-def _proposal_backend(config: StylizeConfig):
-    """The configured proposal backend; the run's seed and content weight w_c go to every backend that has them."""
+def _proposal_backend(config: StylizeConfig, device):
+    """The configured proposal backend; the run's seed and content weight w_c go to every backend that has them,
+    the ``device`` to sd15 (synth has no network)."""
     from .proposal import EnergyTerms, make_backend
 
     if config.proposal == "synth":
         weight = config.content_weight if config.use_content_query else 0.0
         return make_backend("synth", seed=config.seed, content_weight=weight)
-    backend = make_backend("sd15", model_path=config.model_path)
+    backend = make_backend("sd15", model_path=config.model_path, device=device)
     backend.learning_rate = config.latent_lr
     backend.terms = EnergyTerms(
         config.content_weight, config.use_content_query, config.use_style_keys, config.use_style_values
@@ -208,8 +211,10 @@ class Stylization:
         hooks: RunHooks,
         record: RunRecord,
         mask: np.ndarray | None = None,  # [N] bool: the selection to stylize (None: every splat)
+        device: str | torch.device | None = None,  # where the networks run, as stylize() says
     ):
         self.scene, self.config, self.hooks, self.record, self.mask = scene, config, hooks, record, mask
+        self.device = device
         self.style_rgb = _checked_style(style_rgb)
         check_run_settings(config)
         self.size = (config.proposal_height, config.proposal_width)
@@ -270,7 +275,7 @@ class Stylization:
             say(f"colour fit: bounded least squares over the {len(self.cameras)} active views, solved each stage")
             features = None  # Eq. 16's L1, DSSIM, TV and feature terms shape gradient fits only
         else:
-            features = feature_extractor(config.lambda_feature, config.dino_path, say)
+            features = feature_extractor(config.lambda_feature, config.dino_path, say, self.device or "cpu")
         # Mean offsets are relative to the scene's extent (config docstring): lr and bound x extent.
         seen_numpy = seen.numpy()
         self.extent = config.scene_extent or scene_extent(
@@ -306,7 +311,7 @@ class Stylization:
 
     def _set_up_proposals(self, base_renders: list[torch.Tensor], content_images) -> None:
         """The proposal backend and its fixed references at the proposal size: style, contents, coverage."""
-        self.backend = _proposal_backend(self.config)
+        self.backend = _proposal_backend(self.config, self.device)
         style = torch.from_numpy(self.style_rgb).permute(2, 0, 1).contiguous()
         self.style = _resize(style, *self.size)
         self.contents = []

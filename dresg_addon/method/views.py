@@ -264,12 +264,14 @@ def visibility_matrix(
     *,
     progress: Callable[[int, int], None] | None = None,
     cancel: threading.Event | None = None,
+    device: str | torch.device = "cpu",
 ) -> torch.Tensor:
-    """w [V, N] (sparse COO): each Gaussian's depth-consistent visible weight sum_p T alpha in each view (Sec. 4.3).
+    """w [V, N] (sparse COO, on the CPU): each Gaussian's depth-consistent visible weight sum_p T alpha in each
+    view (Sec. 4.3), rendered on ``device``.
 
     ``progress(done, total)`` is called after each view; setting ``cancel`` stops with CancelledError.
     """
-    means, quats, log_scales, logits = geometry_tensors(scene)
+    means, quats, log_scales, logits = (t.to(device) for t in geometry_tensors(scene))
     colors = torch.zeros_like(means)
     rows, cols, vals = [], [], []
     for v, camera in enumerate(cameras):
@@ -279,10 +281,11 @@ def visibility_matrix(
             progress(v, len(cameras))
         with torch.no_grad():
             out = render(means, quats, log_scales, logits, colors, camera, settings, visibility="depth_consistent")
-        nz = torch.nonzero(out.visibility > 0).squeeze(-1)
+        visibility = out.visibility.cpu()
+        nz = torch.nonzero(visibility > 0).squeeze(-1)
         rows.append(torch.full_like(nz, v))
         cols.append(nz)
-        vals.append(out.visibility[nz])
+        vals.append(visibility[nz])
     index = torch.stack([torch.cat(rows), torch.cat(cols)])
     size = (len(cameras), len(scene))
     return torch.sparse_coo_tensor(index, torch.cat(vals), size, check_invariants=False).coalesce()
@@ -296,6 +299,7 @@ def select_active_views(
     progress: Callable[[int, int], None] | None = None,
     cancel: threading.Event | None = None,
     mask: np.ndarray | None = None,  # [N] bool: only these splats count (a stylized selection)
+    device: str | torch.device = "cpu",  # where the coverage renders run
 ) -> ActiveViews:
     """Sec. 4.3: greedy capped-coverage selection (Eqs. 13-15) on the rasterizer's visibility weights.
 
@@ -310,6 +314,7 @@ def select_active_views(
         config.raster_settings(),
         progress=progress,
         cancel=cancel,
+        device=device,
     )
     if mask is not None:  # splats outside the selection are seen by no view, as far as coverage goes
         keep = torch.from_numpy(np.asarray(mask, bool))[w.indices()[1]]
