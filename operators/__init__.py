@@ -9,7 +9,7 @@ import bpy
 
 ADDON_PACKAGE = __package__.rpartition(".")[0]  # the extension's root package (bl_ext.REPO.ID when installed)
 
-from . import dependencies, io_ops, job, properties, stylize, tasks, views  # noqa: E402 (they import ADDON_PACKAGE)
+from . import dependencies, io_ops, job, properties, render_setup, stylize, tasks, views  # noqa: E402 (they import ADDON_PACKAGE)
 
 classes = (
     *properties.classes,
@@ -19,13 +19,25 @@ classes = (
     *stylize.classes,
 )
 
-__all__ = ["ADDON_PACKAGE", "classes", "dependencies", "io_ops", "job", "properties", "stylize", "tasks", "views"]
+__all__ = [
+    "ADDON_PACKAGE",
+    "classes",
+    "dependencies",
+    "io_ops",
+    "job",
+    "properties",
+    "render_setup",
+    "stylize",
+    "tasks",
+    "views",
+]
 
 
 def register() -> None:
     for cls in classes:
         bpy.utils.register_class(cls)
     properties.attach()
+    render_setup.register()
     dependencies.add_site_packages()
 
 
@@ -34,6 +46,7 @@ def unregister() -> None:
     if current is not None:
         current.cancel()
         job.set_current(None)
+    render_setup.unregister()
     properties.detach()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)

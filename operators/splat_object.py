@@ -28,7 +28,7 @@ from ..dresg_addon.scene.gaussians import GaussianScene, blend_coefficients
 from ..dresg_addon.util.errors import SceneFormatError
 
 NODE_GROUP = "DReSG Gaussian Splats"
-NODE_GROUP_VERSION = 2  # bump when the tree changes; older trees are rebuilt in place
+NODE_GROUP_VERSION = 3  # bump when the tree changes; older trees are rebuilt in place
 MODIFIER = "Gaussian Splats"
 MATERIALS = {"GEOMETRY": "DReSG Splat Colour", "INSTANCER": "DReSG Splat Colour (instanced)"}
 SOFT_MATERIAL = "DReSG Soft Splat"
@@ -43,6 +43,8 @@ INPUT_MIN_OPACITY = "Min Opacity"
 INPUT_MAX_SPLATS = "Max Splats"
 INPUT_SOLID = "Solid Mode Colours"
 INPUT_SOFT = "Soft Splats in Renders"
+INPUT_PIXEL = "Render Pixel Size"  # set for each final render by render_setup.py
+INPUT_CORE_ALPHA = "Core Alpha"  # 0: Solid shapes at Scale Factor sigmas; set for Workbench renders by render_setup.py
 
 
 def is_splat_object(obj) -> bool:
@@ -289,6 +291,12 @@ def set_modifier_input(modifier, name: str, value) -> None:
     modifier[modifier.node_group.interface.items_tree[name].identifier] = value
 
 
+def modifier_input(modifier, name: str):
+    """The modifier's value of input ``name``; None when its node group has no such input."""
+    item = modifier.node_group.interface.items_tree.get(name)
+    return None if item is None else modifier.get(item.identifier, item.default_value)
+
+
 def ensure_shape_object(kind: str) -> bpy.types.Object:
     """A unit splat shape (ico sphere, subdivision 1, or a 12-sided disk in the XY plane), not in any scene.
 
@@ -451,6 +459,12 @@ def _build_node_group(group) -> None:
     solid.default_value = True
     soft = interface.new_socket(INPUT_SOFT, in_out="INPUT", socket_type="NodeSocketBool")
     soft.default_value = True
+    pixel = interface.new_socket(INPUT_PIXEL, in_out="INPUT", socket_type="NodeSocketFloat")
+    pixel.default_value, pixel.min_value = 0.0, 0.0
+    pixel.description = "Width of a render pixel one unit in front of the camera, set for each final render"
+    core = interface.new_socket(INPUT_CORE_ALPHA, in_out="INPUT", socket_type="NodeSocketFloat")
+    core.default_value, core.min_value, core.max_value = 0.0, 0.0, 1.0
+    core.description = "Above 0, each solid shape reaches where its splat's alpha falls to this (Workbench renders)"
     interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
 
     nodes, links = group.nodes, group.links
@@ -511,9 +525,32 @@ def _build_node_group(group) -> None:
     y_smallest = both(compare_le(y, x, -850, -300), compare_le(y, z, -850, -400), -700, -350)
     scale_yx = switch("VECTOR", y_smallest, scale_attr, combine(z, x, y, -700, -500), -500, -350)
     scale_vec = switch("VECTOR", x_smallest, scale_yx, combine(y, z, x, -700, -50), -350, -150)
+
+    def solid_sigmas(opacity):
+        """Sigmas to a solid shape's edge: Scale Factor, or with a Core Alpha t > 0 the splat's core, where its
+        alpha o exp(-r^2 / 2) falls to t: r = sqrt(2 ln(o / t)), none when o <= t (Workbench draws opaque)."""
+        core_alpha = inputs.outputs[INPUT_CORE_ALPHA]
+        ratio = node("ShaderNodeMath", -1000, -1300, operation="DIVIDE")
+        links.new(opacity, ratio.inputs[0])
+        links.new(core_alpha, ratio.inputs[1])
+        log = node("ShaderNodeMath", -850, -1300, operation="LOGARITHM")
+        links.new(ratio.outputs[0], log.inputs[0])
+        log.inputs[1].default_value = 2.718281828459045
+        twice = node("ShaderNodeMath", -700, -1300, operation="MULTIPLY_ADD")
+        links.new(log.outputs[0], twice.inputs[0])
+        twice.inputs[1].default_value, twice.inputs[2].default_value = 2.0, 0.0
+        positive = node("ShaderNodeMath", -550, -1300, operation="MAXIMUM")
+        links.new(twice.outputs[0], positive.inputs[0])
+        positive.inputs[1].default_value = 0.0
+        radius = node("ShaderNodeMath", -400, -1300, operation="SQRT")
+        links.new(positive.outputs[0], radius.inputs[0])
+        cores = node("FunctionNodeCompare", -400, -1450, data_type="FLOAT", operation="GREATER_THAN")
+        links.new(core_alpha, cores.inputs[0])
+        return switch("FLOAT", cores.outputs[0], inputs.outputs[INPUT_SCALE], radius.outputs[0], -250, -1350)
+
     scaled = node("ShaderNodeVectorMath", -200, -150, operation="SCALE")
     links.new(scale_vec, scaled.inputs[0])
-    links.new(inputs.outputs[INPUT_SCALE], scaled.inputs["Scale"])
+    links.new(solid_sigmas(named(sm.OPACITY, "FLOAT", -1150, -1300)), scaled.inputs["Scale"])
 
     identity = node("FunctionNodeEulerToRotation", -700, -650)
     frame_x = node("FunctionNodeEulerToRotation", -700, -750)
@@ -578,6 +615,38 @@ def _build_node_group(group) -> None:
     links.new(geometry, realized.inputs[0])
     solid_view = switch("GEOMETRY", inputs.outputs[INPUT_SOLID], geometry, realized.outputs[0], 1250, 100)
 
+    def low_passed(sigmas):
+        """The rasterizer's screen-space low-pass in 3D: sqrt(s^2 + LOW_PASS (d p)^2) on each axis, d the
+        splat's distance to the render camera and p the Render Pixel Size, adds LOW_PASS px^2 to the splat's
+        projected covariance (exactly at the image centre: J (S^2 + e I) J^T = J S^2 J^T + e J J^T)."""
+        camera = node("GeometryNodeInputActiveCamera", -1150, -1000)
+        where = node("GeometryNodeObjectInfo", -1000, -1000, transform_space="RELATIVE")
+        links.new(camera.outputs[0], where.inputs["Object"])
+        distance = node("ShaderNodeVectorMath", -850, -1000, operation="DISTANCE")
+        links.new(node("GeometryNodeInputPosition", -1000, -1150).outputs[0], distance.inputs[0])
+        links.new(where.outputs["Location"], distance.inputs[1])
+        footprint = node("ShaderNodeMath", -700, -1000, operation="MULTIPLY")
+        links.new(distance.outputs["Value"], footprint.inputs[0])
+        links.new(inputs.outputs[INPUT_PIXEL], footprint.inputs[1])
+        variance = node("ShaderNodeMath", -550, -1000, operation="MULTIPLY")
+        links.new(footprint.outputs[0], variance.inputs[0])
+        links.new(footprint.outputs[0], variance.inputs[1])
+        squared = node("ShaderNodeVectorMath", -550, -1150, operation="MULTIPLY")
+        links.new(sigmas, squared.inputs[0])
+        links.new(sigmas, squared.inputs[1])
+        widened = node("ShaderNodeVectorMath", -400, -1100, operation="MULTIPLY_ADD")
+        links.new(variance.outputs[0], widened.inputs[0])  # a float into a vector socket: (v, v, v)
+        widened.inputs[1].default_value = (sm.LOW_PASS,) * 3
+        links.new(squared.outputs[0], widened.inputs[2])
+        axes = node("ShaderNodeSeparateXYZ", -250, -1100)
+        links.new(widened.outputs[0], axes.inputs[0])
+        roots = []
+        for index, axis in enumerate(axes.outputs):
+            root = node("ShaderNodeMath", -100, -1000 - 100 * index, operation="SQRT")
+            links.new(axis, root.inputs[0])
+            roots.append(root.outputs[0])
+        return combine(*roots, 50, -1100)
+
     # Soft splats: instances of the shape at SOFT_RADIUS sigmas with the falloff material, carrying only
     # the colour (its alpha is the opacity). Renders use them unless turned off; the viewport uses them
     # when Solid Mode Colours is off (Material Preview and Rendered then match F12).
@@ -585,7 +654,7 @@ def _build_node_group(group) -> None:
     links.new(no_color.outputs[0], soft_shape.inputs["Geometry"])
     soft_shape.inputs["Material"].default_value = ensure_soft_material()
     soft_scale = node("ShaderNodeVectorMath", -200, -300, operation="SCALE")
-    links.new(scale_vec, soft_scale.inputs[0])
+    links.new(low_passed(scale_vec), soft_scale.inputs[0])
     soft_scale.inputs["Scale"].default_value = sm.SOFT_RADIUS
     soft_geometry = colour_instances(soft_shape.outputs[0], soft_scale.outputs["Vector"], 500)
 

@@ -270,6 +270,8 @@ def local_up(object_matrix_world: np.ndarray) -> np.ndarray:
 # whose flat faces lie 0.7947 from its centre, scaled so that the faces enclose that radius.
 GAUSSIAN_CUTOFF_SIGMAS = float(np.sqrt(2.0 * np.log(255.0)))
 ICO_INRADIUS = 0.7946544722917661  # of the unit-circumradius icosahedron
+# px^2 the rasterizer adds to each splat's 2D covariance (raster.projection.LOW_PASS, which imports torch)
+LOW_PASS = 0.3
 SOFT_RADIUS = GAUSSIAN_CUTOFF_SIGMAS / ICO_INRADIUS  # sigmas from a splat's centre to its instance's vertices
 MAX_ALPHA = 0.99  # the rasterizer's cap on one splat's alpha
 
