@@ -425,3 +425,11 @@ def test_cuda_matches_cpu():
     assert torch.allclose(rgb_cpu, rgb_gpu, atol=1e-10)
     for g_cpu, g_gpu in zip(grads_cpu, grads_gpu):
         assert torch.allclose(g_cpu, g_gpu, rtol=1e-8, atol=1e-10)
+
+
+def test_blender_preview_uses_the_rasterizers_low_pass():
+    """splat_mesh keeps its own copy (the add-on imports it without torch); they must agree."""
+    from dresg_addon.raster.projection import LOW_PASS
+    from dresg_addon.scene import splat_mesh
+
+    assert splat_mesh.LOW_PASS == LOW_PASS
