@@ -58,17 +58,23 @@ def render_mean_colour(path) -> np.ndarray:
     scene = bpy.context.scene
     scene.camera = bpy.data.objects["orbit_000"]
     scene.render.engine = "BLENDER_WORKBENCH"  # shows the realized splats, not the soft ones
+    from stylize_gaussians.operators import render_setup
     from stylize_gaussians.operators.splat_object import INPUT_SOFT, set_modifier_input, splat_modifier
 
     for obj in scene.objects:
         if splat_modifier(obj) is not None:
             set_modifier_input(splat_modifier(obj), INPUT_SOFT, False)
+    # The Solid preview's look (every splat at Scale Factor sigmas), not F12's opacity-sized cores.
+    render_setup.unregister()
     scene.display.shading.light = "FLAT"
     scene.display.shading.color_type = "VERTEX"
     scene.view_settings.view_transform = "Standard"
     scene.render.film_transparent = True
     scene.render.filepath = str(path)
-    bpy.ops.render.render(write_still=True)
+    try:
+        bpy.ops.render.render(write_still=True)
+    finally:
+        render_setup.register()
     image = read_image(path)
     inside = image[..., 3] > 0.999
     assert inside.sum() > 300
