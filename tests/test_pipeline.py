@@ -586,6 +586,14 @@ def test_the_log_has_one_line_per_stage_and_saved_views_hold_four_images_per_vie
         assert image.shape == (32, 48, 3)
 
 
+def test_the_post_stage_fit_ends_near_the_optimum_of_its_colour_map():
+    """The post stage's targets are one affine colour map of the renders: its solve starts from the splats' colours
+    under that map and is anchored there, so the anchor does not hold the fit back from the optimum."""
+    post = run(config=TINY.with_(stages=1, post_steps=2, log_optimum=True)).log[-1]
+    assert post["stage"] == "post" and post["gap_closed"] > 0.5
+    assert post["fit_residual"] <= 1.2 * post["optimum_residual"] + 1e-4
+
+
 # --- view selection ---------------------------------------------------------------------------------------
 
 

@@ -261,9 +261,13 @@ class BoundedColorFit:
         self.views = renderer.linear_views(SOLVE_MIN_WEIGHT)
         self.fit, self.settings, self.optimum = fit, settings, optimum
 
-    def solve(self, targets: Sequence[torch.Tensor], each_round=None) -> ColorSolveResult:  # V x [3, H, W]
-        """Solve, write the colours into the fit state; ``optimum``: also the plain least-squares optimum."""
-        result = solve_colors(self.views, targets, self.fit.colors.detach(), self.settings, each_round, self.optimum)
+    def solve(
+        self, targets: Sequence[torch.Tensor], each_round=None, start: torch.Tensor | None = None
+    ) -> ColorSolveResult:  # V x [3, H, W]
+        """Solve from ``start`` (default: the current colours, which the anchor then holds to), write the colours
+        into the fit state; ``optimum``: also the plain least-squares optimum."""
+        start = self.fit.colors.detach() if start is None else start.detach()
+        result = solve_colors(self.views, targets, start, self.settings, each_round, self.optimum)
         with torch.no_grad():
             self.fit.colors.copy_(result.colors)
         return result
