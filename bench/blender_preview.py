@@ -1,8 +1,9 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """Does Blender's F12 look like the splat scene? EEVEE's and Workbench's renders against the engine's own.
 
-    .venv/bin/python bench/blender_preview.py [--scenes luigi,bonsai,thin] [--engines eevee,workbench]
-        [--width 448 --height 320] [--samples 1] [--view 1] [--figure docs/blender_preview.png] [--json out.json]
+    .venv/bin/python bench/blender_preview.py [--scenes luigi,bonsai-tree,thin] [--engines eevee,workbench]
+        [--low-pass on|off|both] [--width 448 --height 320] [--samples 1] [--view 1]
+        [--figure docs/blender_preview.png] [--json out.json]
 
 Not a test (tests/test_blender_preview.py runs small cases with the same function). For each scene: a
 fresh empty Blender file (bpy module), Import Gaussian Splats with its defaults (soft splats in
@@ -12,13 +13,17 @@ engine's render of the same camera, converted through the object's transform as 
 (``dresg render``'s rasterizer, over black). Compared on the pixels the engine covers (alpha > 0.5):
 SSIM of luminance and mean absolute colour error. Targets: EEVEE SSIM >= 0.7 and error <= 0.08 on the
 captures, SSIM >= 0.75 and error <= 0.06 on ``thin`` (issue 18); Workbench error <= 0.1. ``thin`` is
-generated here: 6,000 sprinkles (splats 20 x 1 x 1 of their own widths, under a pixel wide) on a torus.
+generated here: 6,000 sprinkles (splats 20 x 1 x 1 of their own widths, under a pixel wide) on a torus;
+``bonsai-tree`` is the bonsai's tree and pot (:func:`crop_ply`), because an EEVEE frame of the whole bonsai
+takes over 50 minutes on software OpenGL. ``--low-pass off`` (or ``both``) also renders EEVEE without the
+render-time low-pass, as the viewport draws. Measured numbers: README, "Measured performance".
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -30,12 +35,15 @@ from harness import load_addon
 from dresg_addon.util.machine import cpu_model, load_average, usable_cores
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared" / "data" / "scenes"
-SCENES = {  # name -> (file, axes); "thin" is written by thin_splats_ply
+SHARED = Path(os.environ.get("DRESG_SHARED_DATA", REPO.parent / "shared" / "data")) / "scenes"
+SCENES = {  # name -> (file, axes); "thin" is written by thin_splats_ply, "bonsai-tree" by crop_ply
     "luigi": ("luigi.ply", "Y_UP_TO_BLENDER"),
     "bonsai": ("bonsai-7k-mini.splat", "OPENCV_TO_BLENDER"),
+    "bonsai-tree": ("bonsai-7k-mini.splat", "OPENCV_TO_BLENDER"),
     "thin": ("", "NONE"),
 }
+TREE = (-0.256, -0.15, 0.229)  # the bonsai tree in the capture's coordinates (between trunk and canopy)
+TREE_SPLATS = 40_000
 ENGINES = {"eevee": "EEVEE", "workbench": "WORKBENCH"}
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
 
@@ -64,6 +72,18 @@ def thin_splats_ply(path: str | Path, n: int = 6000, seed: int = 0) -> Path:
     return Path(path)
 
 
+def crop_ply(source: str | Path, path: str | Path, centre=TREE, n: int = TREE_SPLATS) -> Path:
+    """The ``n`` splats of ``source`` nearest ``centre``, at the capture's own density: by default the bonsai's tree
+    and pot. An EEVEE frame costs about the same per splat at any size here (software OpenGL): the whole bonsai
+    ran over 50 minutes, so the bench compares this crop."""
+    from dresg_addon.scene.io import read_scene, write_scene
+
+    scene = read_scene(source)
+    distance = np.linalg.norm(scene.means - np.asarray(centre, np.float32), axis=1)
+    write_scene(scene.subset(np.sort(np.argsort(distance)[:n])), path)
+    return Path(path)
+
+
 def compare(
     path: str | Path,
     axes: str,
@@ -74,9 +94,11 @@ def compare(
     view: int = 0,
     orbit: int = 8,
     engine_name: str = "EEVEE",
+    low_pass: bool = True,
 ) -> dict:
     """An F12 render (``engine_name``: EEVEE or WORKBENCH) of the imported splats and the engine's render of the same
-    camera, and how close."""
+    camera, and how close. ``low_pass=False`` renders EEVEE without the render-time low-pass (to measure what it
+    changes)."""
     import bpy
     import torch
 
@@ -105,9 +127,17 @@ def compare(
         scene.render.filepath = str(Path(folder) / "render.png")
         scene.render.image_settings.file_format = "PNG"
         scene.render.image_settings.color_mode = "RGBA"
-        start = time.perf_counter()
-        bpy.ops.render.render(write_still=True)
-        blender_seconds = time.perf_counter() - start
+        modifier = addon.operators.splat_object.splat_modifier(obj)
+        if not low_pass:  # a pixel size of 0 is what the viewport gets: no low-pass
+            addon.operators.render_setup.unregister()
+            addon.operators.splat_object.set_modifier_input(modifier, addon.operators.splat_object.INPUT_PIXEL, 0.0)
+        try:
+            start = time.perf_counter()
+            bpy.ops.render.render(write_still=True)
+            blender_seconds = time.perf_counter() - start
+        finally:
+            if not low_pass:
+                addon.operators.render_setup.register()
         rgba = read_image(scene.render.filepath)
     blender = rgba[..., :3] * rgba[..., 3:4]  # straight alpha over black
 
@@ -130,6 +160,7 @@ def compare(
         "splats": len(splats),
         "size": [width, height],
         "samples": samples,
+        "low_pass": low_pass,
         "covered": float(covered.mean()),
         "ssim_luminance": ssim,
         "mean_colour_error": error,
@@ -150,17 +181,25 @@ def eevee_engine() -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", default="luigi,bonsai,thin")
+    parser.add_argument("--scenes", default="luigi,bonsai-tree,thin", help="luigi, bonsai, bonsai-tree, thin")
     parser.add_argument("--engines", default="eevee,workbench", help="comma-separated: eevee, workbench")
     parser.add_argument("--width", type=int, default=448)
     parser.add_argument("--height", type=int, default=320)
     parser.add_argument("--samples", type=int, default=1, help="EEVEE render samples (blended splats need one)")
+    parser.add_argument(
+        "--low-pass",
+        default="on",
+        choices=("on", "off", "both"),
+        help="EEVEE with the render-time low-pass, without, or both",
+    )
     parser.add_argument("--view", type=int, default=1, help="which of the 8 orbit cameras")
     parser.add_argument("--figure", help="write engine | each Blender engine side by side, one row per scene")
     parser.add_argument("--json", help="write the numbers")
     args = parser.parse_args(argv)
 
     engines = [ENGINES[name] for name in args.engines.split(",")]
+    low_passes = {"on": [True], "off": [False], "both": [True, False]}[args.low_pass]
+    cases = [(e, lp) for e in engines for lp in (low_passes if e == "EEVEE" else [True])]
     rows, results = [], []
     print(f"- machine: {cpu_model()}, {usable_cores()} cores usable; load average at start: {load_average()}")
     print("| scene | splats | Blender engine | its render | engine | luminance SSIM | mean colour error |")
@@ -172,8 +211,10 @@ def main(argv=None) -> int:
             if not path.exists():
                 print(f"| {name} | skipped: {path} not present | | | | | |")
                 continue
+            if name == "bonsai-tree":
+                path = crop_ply(path, Path(folder) / "bonsai-tree.ply")
             row = []
-            for engine_name in engines:
+            for engine_name, low_pass in cases:
                 result = compare(
                     path,
                     axes,
@@ -182,9 +223,11 @@ def main(argv=None) -> int:
                     samples=args.samples,
                     view=args.view,
                     engine_name=engine_name,
+                    low_pass=low_pass,
                 )
+                label = engine_name if engine_name != "EEVEE" or low_pass else "EEVEE, no low-pass"
                 print(
-                    f"| {name} | {result['splats']:,} | {engine_name} | {result['blender_seconds']:.1f} s "
+                    f"| {name} | {result['splats']:,} | {label} | {result['blender_seconds']:.1f} s "
                     f"| {result['engine_seconds']:.2f} s | {result['ssim_luminance']:.3f} "
                     f"| {result['mean_colour_error']:.4f} |"
                 )
@@ -198,7 +241,8 @@ def main(argv=None) -> int:
 
         gap = np.ones((4, rows[0].shape[1], 3))
         write_image(args.figure, np.concatenate([part for row in rows for part in (row, gap)][:-1], 0))
-        print(f"wrote {args.figure} (left: the engine's render, then {', '.join(engines)})")
+        shown = ", ".join(e if e != "EEVEE" or lp else "EEVEE without the low-pass" for e, lp in cases)
+        print(f"wrote {args.figure} (left: the engine's render, then {shown})")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))
     return 0
