@@ -9,7 +9,8 @@
   bonsai's faint background floaters as large opaque shards and 0.035 leaves a few specks).
 - EEVEE and Cycles get the rasterizer's screen-space low-pass (``splat_mesh.LOW_PASS`` px^2 added to each splat's 2D
   covariance, as 3DGS does), so splats thinner than a pixel keep their weight: the modifier's Render Pixel
-  Size is set from the render camera and resolution (0, no low-pass, in the viewport, whose size varies).
+  Size (perspective) or Render Pixel Width (orthographic) is set from the render camera and resolution (0, no
+  low-pass, in the viewport, whose size varies).
 
 Handlers run on the main thread, before the render's depsgraph is built; every value changed is restored
 in ``render_post`` / ``render_cancel``, so the file is saved as the user left it.
@@ -21,6 +22,7 @@ from ..dresg_addon.scene.blender_camera import blender_intrinsics
 from .splat_object import (
     INPUT_CORE_ALPHA,
     INPUT_PIXEL,
+    INPUT_PIXEL_WIDTH,
     INPUT_SOFT,
     INPUT_SOLID,
     modifier_input,
@@ -44,10 +46,27 @@ def pixel_size(scene) -> float:
     return 1.0 / (fx * fy) ** 0.5
 
 
-def _settings_for(scene) -> dict[str, object]:
+def orthographic_pixel_width(scene) -> float:
+    """Width of one render pixel in world units for an orthographic scene camera (its Orthographic Scale spans
+    the sensor-fit side of the image); 0 for any other camera."""
+    camera = scene.camera
+    if camera is None or camera.type != "CAMERA" or camera.data.type != "ORTHO":
+        return 0.0
+    render, fit = scene.render, camera.data.sensor_fit
+    percent = render.resolution_percentage / 100.0
+    width, height = render.resolution_x * percent, render.resolution_y * percent
+    if fit == "AUTO":
+        fit = "HORIZONTAL" if width * render.pixel_aspect_x >= height * render.pixel_aspect_y else "VERTICAL"
+    return camera.data.ortho_scale / max(width if fit == "HORIZONTAL" else height, 1.0)
+
+
+def _settings_for(scene, obj) -> dict[str, object]:
     if scene.render.engine == "BLENDER_WORKBENCH":
         return {INPUT_SOFT: False, INPUT_SOLID: True, INPUT_CORE_ALPHA: WORKBENCH_CORE_ALPHA}
-    return {INPUT_PIXEL: pixel_size(scene)}
+    # The node group works in the object's space: a world-space pixel width is divided by the object's scale (the
+    # perspective pixel size is a ratio of lengths, the same in any unit).
+    scale = sum(abs(v) for v in obj.matrix_world.to_scale()) / 3.0
+    return {INPUT_PIXEL: pixel_size(scene), INPUT_PIXEL_WIDTH: orthographic_pixel_width(scene) / max(scale, 1e-12)}
 
 
 def _splat_modifiers(scene):
@@ -60,9 +79,8 @@ def _splat_modifiers(scene):
 @bpy.app.handlers.persistent
 def _before_render(scene, *_):
     _restore()
-    settings = _settings_for(scene)
     for obj, modifier in _splat_modifiers(scene):
-        for name, value in settings.items():
+        for name, value in _settings_for(scene, obj).items():
             before = modifier_input(modifier, name)
             if before is None or before == value:
                 continue

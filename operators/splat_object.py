@@ -28,7 +28,7 @@ from ..dresg_addon.scene.gaussians import GaussianScene, blend_coefficients
 from ..dresg_addon.util.errors import SceneFormatError
 
 NODE_GROUP = "DReSG Gaussian Splats"
-NODE_GROUP_VERSION = 3  # bump when the tree changes; older trees are rebuilt in place
+NODE_GROUP_VERSION = 4  # bump when the tree changes; older trees are rebuilt in place
 MODIFIER = "Gaussian Splats"
 MATERIALS = {"GEOMETRY": "DReSG Splat Colour", "INSTANCER": "DReSG Splat Colour (instanced)"}
 SOFT_MATERIAL = "DReSG Soft Splat"
@@ -44,6 +44,7 @@ INPUT_MAX_SPLATS = "Max Splats"
 INPUT_SOLID = "Solid Mode Colours"
 INPUT_SOFT = "Soft Splats in Renders"
 INPUT_PIXEL = "Render Pixel Size"  # set for each final render by render_setup.py
+INPUT_PIXEL_WIDTH = "Render Pixel Width"  # the same for an orthographic camera, whose pixels do not grow with depth
 INPUT_CORE_ALPHA = "Core Alpha"  # 0: Solid shapes at Scale Factor sigmas; set for Workbench renders by render_setup.py
 
 
@@ -462,6 +463,9 @@ def _build_node_group(group) -> None:
     pixel = interface.new_socket(INPUT_PIXEL, in_out="INPUT", socket_type="NodeSocketFloat")
     pixel.default_value, pixel.min_value = 0.0, 0.0
     pixel.description = "Width of a render pixel one unit in front of the camera, set for each final render"
+    width = interface.new_socket(INPUT_PIXEL_WIDTH, in_out="INPUT", socket_type="NodeSocketFloat")
+    width.default_value, width.min_value = 0.0, 0.0
+    width.description = "Width of a render pixel in the object's units (orthographic cameras), set for each final render"
     core = interface.new_socket(INPUT_CORE_ALPHA, in_out="INPUT", socket_type="NodeSocketFloat")
     core.default_value, core.min_value, core.max_value = 0.0, 0.0, 1.0
     core.description = "Above 0, each solid shape reaches where its splat's alpha falls to this (Workbench renders)"
@@ -616,9 +620,10 @@ def _build_node_group(group) -> None:
     solid_view = switch("GEOMETRY", inputs.outputs[INPUT_SOLID], geometry, realized.outputs[0], 1250, 100)
 
     def low_passed(sigmas):
-        """The rasterizer's screen-space low-pass in 3D: sqrt(s^2 + LOW_PASS (d p)^2) on each axis, d the
-        splat's distance to the render camera and p the Render Pixel Size, adds LOW_PASS px^2 to the splat's
-        projected covariance (exactly at the image centre: J (S^2 + e I) J^T = J S^2 J^T + e J J^T)."""
+        """The rasterizer's screen-space low-pass in 3D: sqrt(s^2 + LOW_PASS ((d p)^2 + w^2)) on each axis, d the
+        splat's distance to the render camera, p the Render Pixel Size and w the Render Pixel Width (one of the
+        two is 0), adds LOW_PASS px^2 to the splat's projected covariance (exactly at the image centre:
+        J (S^2 + e I) J^T = J S^2 J^T + e J J^T)."""
         camera = node("GeometryNodeInputActiveCamera", -1150, -1000)
         where = node("GeometryNodeObjectInfo", -1000, -1000, transform_space="RELATIVE")
         links.new(camera.outputs[0], where.inputs["Object"])
@@ -628,9 +633,13 @@ def _build_node_group(group) -> None:
         footprint = node("ShaderNodeMath", -700, -1000, operation="MULTIPLY")
         links.new(distance.outputs["Value"], footprint.inputs[0])
         links.new(inputs.outputs[INPUT_PIXEL], footprint.inputs[1])
-        variance = node("ShaderNodeMath", -550, -1000, operation="MULTIPLY")
+        variance = node("ShaderNodeMath", -550, -1000, operation="MULTIPLY_ADD")  # (d p)^2 + w^2
         links.new(footprint.outputs[0], variance.inputs[0])
         links.new(footprint.outputs[0], variance.inputs[1])
+        width_squared = node("ShaderNodeMath", -700, -900, operation="MULTIPLY")
+        links.new(inputs.outputs[INPUT_PIXEL_WIDTH], width_squared.inputs[0])
+        links.new(inputs.outputs[INPUT_PIXEL_WIDTH], width_squared.inputs[1])
+        links.new(width_squared.outputs[0], variance.inputs[2])
         squared = node("ShaderNodeVectorMath", -550, -1150, operation="MULTIPLY")
         links.new(sigmas, squared.inputs[0])
         links.new(sigmas, squared.inputs[1])

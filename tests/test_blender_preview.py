@@ -55,6 +55,7 @@ def test_render_settings_are_put_back_after_each_render(addon, tmp_path):
     from stylize_gaussians.operators.splat_object import (
         INPUT_CORE_ALPHA,
         INPUT_PIXEL,
+        INPUT_PIXEL_WIDTH,
         INPUT_SOFT,
         INPUT_SOLID,
         modifier_input,
@@ -70,8 +71,15 @@ def test_render_settings_are_put_back_after_each_render(addon, tmp_path):
     scene.render.resolution_x, scene.render.resolution_y = 64, 48
     scene.eevee.taa_render_samples = 1  # blended splats need one; llvmpipe takes minutes for EEVEE's default 64
     modifier = splat_modifier(obj)
-    before = {name: modifier_input(modifier, name) for name in (INPUT_SOFT, INPUT_SOLID, INPUT_PIXEL, INPUT_CORE_ALPHA)}
-    assert before == {INPUT_SOFT: True, INPUT_SOLID: True, INPUT_PIXEL: 0.0, INPUT_CORE_ALPHA: 0.0}
+    names = (INPUT_SOFT, INPUT_SOLID, INPUT_PIXEL, INPUT_PIXEL_WIDTH, INPUT_CORE_ALPHA)
+    before = {name: modifier_input(modifier, name) for name in names}
+    assert before == {
+        INPUT_SOFT: True,
+        INPUT_SOLID: True,
+        INPUT_PIXEL: 0.0,
+        INPUT_PIXEL_WIDTH: 0.0,
+        INPUT_CORE_ALPHA: 0.0,
+    }
     seen = {}
 
     def during(scene_, *_):
@@ -85,9 +93,91 @@ def test_render_settings_are_put_back_after_each_render(addon, tmp_path):
             assert {name: modifier_input(modifier, name) for name in before} == before
     finally:
         bpy.app.handlers.render_post.remove(during)
-    workbench = {INPUT_SOFT: False, INPUT_SOLID: True, INPUT_PIXEL: 0.0, INPUT_CORE_ALPHA: WORKBENCH_CORE_ALPHA}
+    workbench = {**before, INPUT_SOFT: False, INPUT_CORE_ALPHA: WORKBENCH_CORE_ALPHA}
     assert seen["BLENDER_WORKBENCH"] == pytest.approx(workbench)
     eevee = seen[blender_preview.eevee_engine()]
     pixel = addon.operators.render_setup.pixel_size(scene)
     assert pixel == pytest.approx(1 / addon.operators.views.engine_cameras(scene, obj, [scene.camera])[0].fx, rel=1e-3)
     assert eevee == pytest.approx({**before, INPUT_PIXEL: pixel})
+
+
+def _eevee_rgba(scene, path) -> np.ndarray:
+    from stylize_gaussians.dresg_addon.util.imageio import read_image
+
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+    return read_image(str(path))
+
+
+def test_orthographic_renders_get_the_low_pass_as_a_pixel_width(addon, tmp_path):
+    """An orthographic camera's pixels do not grow with depth: the low-pass comes from its pixel width. Its render
+    of sub-pixel sprinkles matches a perspective camera far away with a long lens (nearly orthographic) framing
+    the same, which the engine-checked perspective low-pass draws; without the low-pass it is sparse dots."""
+    from mathutils import Vector
+    from stylize_gaussians.operators import render_setup
+    from stylize_gaussians.operators.splat_object import INPUT_PIXEL, INPUT_PIXEL_WIDTH, set_modifier_input
+
+    thin = blender_preview.thin_splats_ply(tmp_path / "thin.ply", n=800)
+    assert bpy.ops.dresg.import_splats(filepath=str(thin), axis_conversion="NONE") == {"FINISHED"}
+    obj = bpy.context.active_object
+    obj.scale = (2.0, 2.0, 2.0)  # the pixel width goes into the object's units
+    scene = bpy.context.scene
+    scene.render.engine = blender_preview.eevee_engine()
+    scene.eevee.taa_render_samples = 1
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 160, 120, 100
+    scene.render.film_transparent = True
+    scene.render.image_settings.file_format, scene.render.image_settings.color_mode = "PNG", "RGBA"
+    camera = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    direction = Vector((0.0, -1.0, 0.8)).normalized()  # from the torus's centre towards the camera
+    camera.rotation_euler = direction.to_track_quat("Z", "Y").to_euler()  # the camera looks down its -Z
+
+    distance, far = 8.0, 400.0
+    camera.location = direction * far
+    camera.data.type, camera.data.lens, camera.data.clip_end = "PERSP", 50.0 * far / distance, 2 * far
+    perspective = _eevee_rgba(scene, tmp_path / "perspective.png")
+    camera.location = direction * distance
+    camera.data.type = "ORTHO"
+    camera.data.ortho_scale = camera.data.sensor_width * distance / 50.0  # the same framing at the torus
+    seen = {}
+
+    def during(scene_, *_):
+        modifier = addon.operators.splat_object.splat_modifier(obj)
+        seen.update(
+            {
+                name: addon.operators.splat_object.modifier_input(modifier, name)
+                for name in (INPUT_PIXEL, INPUT_PIXEL_WIDTH)
+            }
+        )
+
+    bpy.app.handlers.render_post.insert(0, during)
+    try:
+        orthographic = _eevee_rgba(scene, tmp_path / "orthographic.png")
+    finally:
+        bpy.app.handlers.render_post.remove(during)
+    assert seen[INPUT_PIXEL] == 0.0
+    assert seen[INPUT_PIXEL_WIDTH] == pytest.approx(camera.data.ortho_scale / 160 / 2.0, rel=1e-5)
+    render_setup.unregister()
+    try:
+        set_modifier_input(addon.operators.splat_object.splat_modifier(obj), INPUT_PIXEL_WIDTH, 0.0)
+        unfiltered = _eevee_rgba(scene, tmp_path / "unfiltered.png")
+    finally:
+        render_setup.register()
+
+    covered = perspective[..., 3] > 0.5
+    assert covered.mean() > 0.05
+
+    def luminance_ssim(image):
+        import torch
+        from stylize_gaussians.dresg_addon.evaluation.metrics import ssim_per_image
+
+        def luma(x):
+            return torch.from_numpy(
+                np.ascontiguousarray(((x[..., :3] * x[..., 3:]) @ blender_preview.LUMA)[None].repeat(3, 0))
+            )
+
+        return float(ssim_per_image(luma(image), luma(perspective), torch.from_numpy(covered)))
+
+    assert luminance_ssim(orthographic) >= 0.9
+    assert luminance_ssim(unfiltered) < 0.6
