@@ -22,6 +22,7 @@ render-time low-pass, as the viewport draws. Measured numbers: README, "Measured
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -84,6 +85,33 @@ def crop_ply(source: str | Path, path: str | Path, centre=TREE, n: int = TREE_SP
     return Path(path)
 
 
+@contextlib.contextmanager
+def without_render_setup(addon):
+    """Renders inside go without the add-on's render handlers: EEVEE without the render-time low-pass, as the
+    viewport draws (the modifier's pixel inputs are 0 between renders)."""
+    addon.operators.render_setup.unregister()
+    try:
+        yield
+    finally:
+        addon.operators.render_setup.register()
+
+
+def luminance_ssim(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> float:
+    """SSIM of the luminance of two [H, W, 3] images over ``mask`` [H, W]."""
+    import torch
+
+    from dresg_addon.evaluation.metrics import ssim_per_image
+
+    def luma(x):
+        return torch.from_numpy(np.ascontiguousarray((x @ LUMA)[None].repeat(3, 0)))
+
+    return float(ssim_per_image(luma(image), luma(reference), torch.from_numpy(mask)))
+
+
+def case_label(engine_name: str, low_pass: bool) -> str:
+    return engine_name if engine_name != "EEVEE" or low_pass else "EEVEE without the low-pass"
+
+
 def compare(
     path: str | Path,
     axes: str,
@@ -100,9 +128,7 @@ def compare(
     camera, and how close. ``low_pass=False`` renders EEVEE without the render-time low-pass (to measure what it
     changes)."""
     import bpy
-    import torch
 
-    from dresg_addon.evaluation.metrics import ssim_per_image
     from dresg_addon.raster import RasterSettings, render_scene
     from dresg_addon.util.imageio import read_image
 
@@ -127,17 +153,10 @@ def compare(
         scene.render.filepath = str(Path(folder) / "render.png")
         scene.render.image_settings.file_format = "PNG"
         scene.render.image_settings.color_mode = "RGBA"
-        modifier = addon.operators.splat_object.splat_modifier(obj)
-        if not low_pass:  # a pixel size of 0 is what the viewport gets: no low-pass
-            addon.operators.render_setup.unregister()
-            addon.operators.splat_object.set_modifier_input(modifier, addon.operators.splat_object.INPUT_PIXEL, 0.0)
-        try:
+        with contextlib.nullcontext() if low_pass else without_render_setup(addon):
             start = time.perf_counter()
             bpy.ops.render.render(write_still=True)
             blender_seconds = time.perf_counter() - start
-        finally:
-            if not low_pass:
-                addon.operators.render_setup.register()
         rgba = read_image(scene.render.filepath)
     blender = rgba[..., :3] * rgba[..., 3:4]  # straight alpha over black
 
@@ -149,10 +168,7 @@ def compare(
     engine = out.rgb.numpy()
     covered = out.alpha.numpy() > 0.5
 
-    def luma(image):
-        return torch.from_numpy(np.ascontiguousarray((image @ LUMA)[None].repeat(3, 0)))
-
-    ssim = float(ssim_per_image(luma(blender), luma(engine), torch.from_numpy(covered)))
+    ssim = luminance_ssim(blender, engine, covered)
     error = float(np.abs(blender - engine)[covered].mean()) if covered.any() else float("nan")
     return {
         "scene": Path(path).name,
@@ -225,9 +241,8 @@ def main(argv=None) -> int:
                     engine_name=engine_name,
                     low_pass=low_pass,
                 )
-                label = engine_name if engine_name != "EEVEE" or low_pass else "EEVEE, no low-pass"
                 print(
-                    f"| {name} | {result['splats']:,} | {label} | {result['blender_seconds']:.1f} s "
+                    f"| {name} | {result['splats']:,} | {case_label(engine_name, low_pass)} | {result['blender_seconds']:.1f} s "
                     f"| {result['engine_seconds']:.2f} s | {result['ssim_luminance']:.3f} "
                     f"| {result['mean_colour_error']:.4f} |"
                 )
@@ -241,7 +256,7 @@ def main(argv=None) -> int:
 
         gap = np.ones((4, rows[0].shape[1], 3))
         write_image(args.figure, np.concatenate([part for row in rows for part in (row, gap)][:-1], 0))
-        shown = ", ".join(e if e != "EEVEE" or lp else "EEVEE without the low-pass" for e, lp in cases)
+        shown = ", ".join(case_label(*case) for case in cases)
         print(f"wrote {args.figure} (left: the engine's render, then {shown})")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))

@@ -60,13 +60,19 @@ def orthographic_pixel_width(scene) -> float:
     return camera.data.ortho_scale / max(width if fit == "HORIZONTAL" else height, 1.0)
 
 
-def _settings_for(scene, obj) -> dict[str, object]:
+def _settings_for(scene) -> dict[str, object]:  # the orthographic pixel width in world units (see _in_object_units)
     if scene.render.engine == "BLENDER_WORKBENCH":
         return {INPUT_SOFT: False, INPUT_SOLID: True, INPUT_CORE_ALPHA: WORKBENCH_CORE_ALPHA}
-    # The node group works in the object's space: a world-space pixel width is divided by the object's scale (the
-    # perspective pixel size is a ratio of lengths, the same in any unit).
+    return {INPUT_PIXEL: pixel_size(scene), INPUT_PIXEL_WIDTH: orthographic_pixel_width(scene)}
+
+
+def _in_object_units(settings: dict[str, object], obj) -> dict[str, object]:
+    """The node group works in the object's space: a world-space pixel width is divided by the object's scale (the
+    perspective pixel size is a ratio of lengths, the same in any unit)."""
+    if not settings.get(INPUT_PIXEL_WIDTH):
+        return settings
     scale = sum(abs(v) for v in obj.matrix_world.to_scale()) / 3.0
-    return {INPUT_PIXEL: pixel_size(scene), INPUT_PIXEL_WIDTH: orthographic_pixel_width(scene) / max(scale, 1e-12)}
+    return {**settings, INPUT_PIXEL_WIDTH: settings[INPUT_PIXEL_WIDTH] / max(scale, 1e-12)}
 
 
 def _splat_modifiers(scene):
@@ -79,8 +85,9 @@ def _splat_modifiers(scene):
 @bpy.app.handlers.persistent
 def _before_render(scene, *_):
     _restore()
+    settings = _settings_for(scene)
     for obj, modifier in _splat_modifiers(scene):
-        for name, value in _settings_for(scene, obj).items():
+        for name, value in _in_object_units(settings, obj).items():
             before = modifier_input(modifier, name)
             if before is None or before == value:
                 continue

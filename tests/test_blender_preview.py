@@ -114,8 +114,7 @@ def test_orthographic_renders_get_the_low_pass_as_a_pixel_width(addon, tmp_path)
     of sub-pixel sprinkles matches a perspective camera far away with a long lens (nearly orthographic) framing
     the same, which the engine-checked perspective low-pass draws; without the low-pass it is sparse dots."""
     from mathutils import Vector
-    from stylize_gaussians.operators import render_setup
-    from stylize_gaussians.operators.splat_object import INPUT_PIXEL, INPUT_PIXEL_WIDTH, set_modifier_input
+    from stylize_gaussians.operators.splat_object import INPUT_PIXEL, INPUT_PIXEL_WIDTH
 
     thin = blender_preview.thin_splats_ply(tmp_path / "thin.ply", n=800)
     assert bpy.ops.dresg.import_splats(filepath=str(thin), axis_conversion="NONE") == {"FINISHED"}
@@ -158,26 +157,16 @@ def test_orthographic_renders_get_the_low_pass_as_a_pixel_width(addon, tmp_path)
         bpy.app.handlers.render_post.remove(during)
     assert seen[INPUT_PIXEL] == 0.0
     assert seen[INPUT_PIXEL_WIDTH] == pytest.approx(camera.data.ortho_scale / 160 / 2.0, rel=1e-5)
-    render_setup.unregister()
-    try:
-        set_modifier_input(addon.operators.splat_object.splat_modifier(obj), INPUT_PIXEL_WIDTH, 0.0)
+    with blender_preview.without_render_setup(addon):
         unfiltered = _eevee_rgba(scene, tmp_path / "unfiltered.png")
-    finally:
-        render_setup.register()
 
     covered = perspective[..., 3] > 0.5
     assert covered.mean() > 0.05
 
-    def luminance_ssim(image):
-        import torch
-        from stylize_gaussians.dresg_addon.evaluation.metrics import ssim_per_image
-
-        def luma(x):
-            return torch.from_numpy(
-                np.ascontiguousarray(((x[..., :3] * x[..., 3:]) @ blender_preview.LUMA)[None].repeat(3, 0))
-            )
-
-        return float(ssim_per_image(luma(image), luma(perspective), torch.from_numpy(covered)))
+    def luminance_ssim(image):  # straight alpha over black
+        return blender_preview.luminance_ssim(
+            image[..., :3] * image[..., 3:], perspective[..., :3] * perspective[..., 3:], covered
+        )
 
     assert luminance_ssim(orthographic) >= 0.9
     assert luminance_ssim(unfiltered) < 0.6
