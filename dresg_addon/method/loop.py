@@ -48,7 +48,7 @@ from .fitting import (
     result_scene,
     seen_gaussians,
 )
-from .guides import SplatGuides, view_guide
+from .guides import view_guide
 from .optim import make_fit_optimizer, scene_extent
 from .schedule import Stage, stage_gammas, stage_timesteps
 from .style_distance import sliced_wasserstein_patches
@@ -365,25 +365,19 @@ class Stylization:
         if guided:  # views in order, each guided by the earlier ones' proposals seen from it (guides.py)
             depths = [self.renderer.depth(v, self.state) for v in range(len(self.cameras))]
             done: list[torch.Tensor | None] = [None] * len(self.cameras)
-            splats = SplatGuides([f.map for f in self.renderer.fast]) if self.renderer.fast is not None else None
         for i in range(len(self.cameras)):
             self.hooks.check_cancel()
             last = work.energies[-1] if work.energies else float("nan")
             self.hooks.report(stage.index, i, len(self.cameras), "proposal", last, f"proposal for {self.names[i]}")
             guide = None
             if guided:
-                camera = self.cameras[i]
-                fill = None if splats is None or i == 0 else splats.guide(i, camera.height, camera.width)
-                weight = self.config.guide_weight
-                guide = view_guide(i, list(range(i)), done, depths, self.alphas, self.cameras, weight, fill)
+                guide = view_guide(i, list(range(i)), done, depths, self.alphas, self.cameras, self.config.guide_weight)
             kwargs = {"guide": guide} if guide is not None else {}
             self.states[i], energies = self.backend.propose(
                 self.states[i], stage.timesteps, self.style, self.contents[i], self.coverages[i], **kwargs
             )
             if guided:
                 done[i] = self.backend.decode(self.states[i]).detach().float()
-                if splats is not None:
-                    splats.add(i, _resize(done[i], self.cameras[i].height, self.cameras[i].width))
             work.energies.append(energies[-1])
         work.proposal_seconds = time.perf_counter() - work.started
 

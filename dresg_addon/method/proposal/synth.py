@@ -41,9 +41,8 @@ How the paper's quantities map onto it (Sec. 4.1, Algorithm 1 lines 3-5):
   the full synthesis (0.0711 / 0.0763 / 0.0858 against 0.0705 / 0.0759 / 0.0857), so the paper's
   schedule stays.
 - Views that agree (``guide``): the loop synthesizes the active views one after another, and each view
-  after the first gets what the earlier views synthesized, reprojected into it by rendered depth, and
-  where depth cannot say (slatted or thin objects, grazing surfaces) painted onto the splats and rendered
-  from this view (:mod:`..guides`). The guide is the starting estimate where it is valid and a fusion term in every
+  after the first gets what the earlier views synthesized, reprojected into it by rendered depth
+  (:mod:`..guides`). The guide is the starting estimate where it is valid and a fusion term in every
   pass, X = (X~ + W C' + G P) / (1 + W + G), so the patch matching reproduces strokes already placed
   on a surface instead of inventing new ones there (Jamriška et al. 2019 guide a video's frames by the
   previous one in the same way). Without it each view pastes strokes, and at coarse levels whole motifs
