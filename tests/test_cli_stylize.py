@@ -143,6 +143,7 @@ def test_stylize_as_a_module_with_ablation_switches_and_quiet(files, tmp_path):
     out = tmp_path / "switches.ply"
     args = _stylize_args(files, out, "--no-feedback", "--no-pcgrad", "--schedule", "triangle", "--views", "0,2")
     args += ["--early-stop", "0.5", "--stages", "2", "--guide-weight", "0", "--solve-anchor", "0"]
+    args += ["--layer-agreement", "0.5"]
     args += ["--solve-tolerance", "0.01", "--robust-power", "1.5", "--color-fit", "solve", "--strength", "0"]
     args += ["--sh-rest", "keep", "--log", str(tmp_path / "custom.jsonl"), "--quiet"]
     done = subprocess.run(
@@ -194,6 +195,7 @@ def test_select_views_prints_a_table_and_json(files, capsys):
         ({"--background": "2,0,0"}, "--background"),
         ({"--early-stop": "1.5"}, "early_stop must be in [0, 1)"),
         ({"--solve-anchor": "-1"}, "solve_anchor must be >= 0"),
+        ({"--layer-agreement": "nan"}, "layer_agreement must be >= 0"),
         ({"--strength": "2"}, "strength must be in [0, 1]"),
         ({"--robust-power": "3"}, "robust_power must be in (0, 2]"),
         ({"--no-style-keys": None}, "synth backend has none"),

@@ -11,6 +11,7 @@ import torch
 from test_pipeline import away_camera, ring_cameras, sphere_scene
 
 from dresg_addon.method.color_solve import ColorSolveSettings, LinearViews, solve_colors
+from dresg_addon.method.config import StylizeConfig
 from dresg_addon.raster import ColorOnlyRenderer, geometry_tensors
 from dresg_addon.scene.gaussians import GaussianScene
 from dresg_addon.util.errors import ConfigError, NumericalError
@@ -220,3 +221,58 @@ def test_a_robust_fit_follows_the_views_that_agree(small):
     # The two views that agree are fitted closer, the one that disagrees further.
     assert rmse(robust.colors, 0) + rmse(robust.colors, 1) < 0.8 * (rmse(squares.colors, 0) + rmse(squares.colors, 1))
     assert rmse(robust.colors, 2) > rmse(squares.colors, 2)
+
+
+def blend_variance(views: LinearViews, colors: torch.Tensor) -> float:
+    """sum over views and pixels of sum_i w_pi ||c_i - mean_p||^2: how far the splats blended in a pixel differ."""
+    columns, inverse_alphas = views.blend_weights()
+    total = float((columns * colors.double().square()).sum())
+    for m, inverse_alpha in zip(views.maps, inverse_alphas):
+        total -= float((m.matvec(colors).double().square() * inverse_alpha).sum())
+    return total
+
+
+def test_layer_agreement_reaches_the_dense_optimum_and_pulls_blended_splats_to_one_colour(small):
+    """min ||A x - b||^2 + beta sum_p sum_i w_pi ||x_i - mean_p||^2 over the box, against FISTA on the dense
+    quadratic (A^T A + beta (D - sum_v W_v^T diag(1 / alpha_v) W_v))."""
+    _, views = small
+    rng = np.random.default_rng(11)
+    targets = [torch.from_numpy(rng.uniform(0, 1, (t.shape[0], 3)).astype(np.float32)) for t in views.constants]
+    start = torch.full((80, 3), 0.5)
+    beta = 1.0
+    blocks = [torch.cat([m.matvec(torch.eye(80)[:, k : k + 1]) for k in range(80)], 1).double() for m in views.maps]
+    matrix = torch.cat(blocks)
+    rhs = torch.cat([t - b for t, b in zip(targets, views.constants)]).double()
+    variance = torch.diag(sum(block.sum(0) for block in blocks))
+    for block in blocks:
+        alpha = block.sum(1)
+        inverse = torch.where(alpha > 1e-6, 1.0 / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
+        variance = variance - block.T @ (inverse[:, None] * block)
+    hessian = matrix.T @ matrix + beta * variance
+    step = 1.0 / float(torch.linalg.matrix_norm(hessian, 2))
+    x = torch.full((80, 3), 0.5, dtype=torch.float64)
+    y, t = x.clone(), 1.0
+    for _ in range(20000):
+        x_next = (y - step * (hessian @ y - matrix.T @ rhs)).clamp(0.0, 1.0)
+        t_next = (1 + math.sqrt(1 + 4 * t * t)) / 2
+        y, x, t = x_next + (t - 1) / t_next * (x_next - x), x_next, t_next
+
+    def total(colors):
+        return objective(views, colors, targets) + beta * blend_variance(views, colors)
+
+    settings = ColorSolveSettings(tolerance=1e-6, max_rounds=40, layer_agreement=beta)
+    result = solve_colors(views, targets, start, settings, optimum=True)
+    assert total(result.colors) <= 1.001 * total(x.float())
+    plain = solve_colors(views, targets, start, replace(settings, layer_agreement=0.0))
+    assert blend_variance(views, result.colors) < 0.5 * blend_variance(views, plain.colors)
+    assert result.least_squares is not None  # the logged optimum is the plain least squares
+    assert objective(views, result.least_squares, targets) == pytest.approx(
+        objective(views, plain.colors, targets), rel=0.01
+    )
+    # Stiff: a term a million times the views' weight makes every pixel's splats one colour, finite.
+    held = solve_colors(views, targets, start, replace(settings, layer_agreement=1e6))
+    assert torch.isfinite(held.colors).all()
+    assert blend_variance(views, held.colors) < 1e-3 * blend_variance(views, plain.colors)
+    with pytest.raises(ConfigError, match="layer_agreement"):
+        ColorSolveSettings(layer_agreement=-1.0)
+    assert StylizeConfig(layer_agreement=0.5).solve_settings().layer_agreement == 0.5  # the run's setting reaches it

@@ -48,6 +48,12 @@ KNOBS = (
         float,
         "colour solve: pull toward the colours before each fit (0: plain least squares)",
     ),
+    (
+        "--layer-agreement",
+        "layer_agreement",
+        float,
+        "colour solve: pull the splats blended in one pixel toward one colour (0: off)",
+    ),
     ("--robust-power", "robust_power", float, "colour solve: r of sum |render - target|^r (2: least squares)"),
     ("--color-lr", "color_lr", float, "Adam learning rate of the colours"),
     ("--geometry-lr", "geometry_lr", float, "Adam learning rate of the geometry offsets (means: x scene extent)"),
