@@ -157,9 +157,6 @@ class _Problem:
             diagonal = diagonal + beta * self.columns
         self.inverse_diagonal = 1.0 / (diagonal + self.ridge + self.anchor_weight)
 
-    def residuals(self, x: torch.Tensor) -> list[torch.Tensor]:  # V x [P, 3]: W_v x - (t_v - b_v)
-        return [m.matvec(x) - r for m, r in zip(self.views.maps, self.rhs)]
-
     def value(self, x: torch.Tensor) -> float:
         total = self.anchor_weight * float((x - self.anchor).double().square().sum()) if self.anchor_weight else 0.0
         for m, r, w, inverse_alpha in zip(self.views.maps, self.rhs, self.weights, self.inverse_alphas):
