@@ -82,10 +82,13 @@ def test_evaluate_end_to_end(files, capsys):
         assert (view["width"], view["height"]) == (40, 32)
         assert view["sw_colors"] > 0 and view["sw_patches"] > 0
         assert 0 < view["ssim"] < 1 and 0 < view["gradient_structure"] < 1
+        assert math.isfinite(view["texture_kept"]) and -1 <= view["texture_kept"] <= 1
+        assert math.isfinite(view["shapes"]) and 0 < view["shapes"] <= 1
         assert view["clip_s"] is None and view["dino_c"] is None
         assert view["alpha_coverage"] > 0.2
     mean = report["mean"]
-    assert mean["ssim"] == pytest.approx(np.mean([v["ssim"] for v in report["per_view"]]))
+    for key in ("ssim", "texture_kept", "shapes"):
+        assert mean[key] == pytest.approx(np.mean([v[key] for v in report["per_view"]]))
     assert mean["clip_s"] is None
     for label in ("stylized", "base"):
         short, long = report["consistency"][label]["short_term"], report["consistency"][label]["long_term"]
@@ -101,6 +104,7 @@ def test_evaluate_end_to_end(files, capsys):
     assert report["efficiency"]["splats"] == 1500
     assert report["settings"]["depth_tolerance"] == metrics.DEPTH_TOLERANCE
     assert report["settings"]["style_size"] == [45, 32]  # 56x40 with its shorter side matched to 32
+    assert "texture kept" in table.splitlines()[0] and "shapes" in table.splitlines()[0]
     assert "mean" in table and "short-term (gap 1)" in table and "FPS" in table and "stylize: 5.5 s" in table
 
 
@@ -110,6 +114,8 @@ def test_evaluate_base_against_itself(files, capsys):
     for view in report["per_view"]:
         assert view["ssim"] == pytest.approx(1.0, abs=1e-6)
         assert view["gradient_structure"] == pytest.approx(1.0, abs=1e-6)
+        assert view["texture_kept"] == pytest.approx(1.0, abs=1e-5)
+        assert view["shapes"] == pytest.approx(1.0, abs=1e-5)
     assert report["consistency"]["stylized"] == report["consistency"]["base"]
 
 
@@ -125,6 +131,7 @@ def test_evaluate_camera_file_order_and_empty_views(files, capsys, tmp_path):
     assert [v["name"] for v in report["per_view"]] == ["img_2.png", "away.png", "img_0.png"]
     empty = report["per_view"][1]
     assert empty["alpha_coverage"] == 0.0 and empty["ssim"] == pytest.approx(1.0)
+    assert empty["texture_kept"] == 0.0 and empty["shapes"] == pytest.approx(1.0)  # both flat: nothing to keep
     short = report["consistency"]["stylized"]["short_term"]
     assert [p["coverage"] for p in short["pairs"]] == [0.0, 0.0] and short["rmse"] is None
     assert "stylized -" in table

@@ -168,6 +168,103 @@ def test_sobel_ramp_has_its_slope():
 
 
 # ----------------------------------------------------------------------------------------------------
+# Texture kept and shapes
+
+
+def textured_base(h=48, w=64, seed=0) -> torch.Tensor:  # [3, H, W] float64: a smooth gradient plus fine noise
+    y, x = torch.meshgrid(torch.linspace(0, 1, h, dtype=F64), torch.linspace(0, 1, w, dtype=F64), indexing="ij")
+    smooth = 0.2 + 0.4 * x + 0.2 * y + 0.1 * torch.sin(6 * x) * torch.cos(4 * y)
+    texture = 0.1 * (torch.rand(h, w, generator=torch.Generator().manual_seed(seed), dtype=F64) - 0.5)
+    colour = torch.tensor([1.0, 0.9, 0.8], dtype=F64)[:, None, None]
+    return (colour * (smooth + texture)).clamp(0, 1)
+
+
+def blur(image: torch.Tensor, sigma: float) -> torch.Tensor:  # [C, H, W]
+    return metrics.gaussian_blur(image[None], sigma)[0]
+
+
+def test_gaussian_blur_keeps_constants_and_the_mean_of_a_periodic_image():
+    flat = torch.full((2, 3, 9, 11), 0.3, dtype=F64)
+    assert torch.allclose(metrics.gaussian_blur(flat, 2.0), flat, atol=1e-12)  # replicated border: no darkening
+    checker = ((torch.arange(24)[:, None] + torch.arange(24)[None]) % 2).to(F64)[None, None]
+    assert torch.allclose(metrics.gaussian_blur(checker, 2.0)[..., 8:-8, 8:-8], torch.full((8, 8), 0.5, dtype=F64))
+    with pytest.raises(ValueError, match="sigma"):
+        metrics.gaussian_blur(flat, 0.0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_texture_kept_and_shapes_of_an_image_against_itself_are_1(dtype):
+    images = torch.stack([textured_base(seed=s) for s in (0, 1)]).to(dtype)
+    mask = blob_mask(48, 64)
+    for kwargs in ({}, {"mask": mask}, {"mask": mask.to(dtype)}):
+        for fn in (metrics.texture_kept, metrics.shape_similarity):
+            values = fn(images, images, **kwargs)
+            assert values.shape == (2,) and values.dtype == dtype
+            assert torch.allclose(values, torch.ones(2, dtype=dtype), atol=1e-5)
+            assert float(fn(images[0], images[0], **kwargs)) == pytest.approx(1.0, abs=1e-5)
+    # A contrast change keeps the texture (a correlation) and a batch is its images one by one.
+    assert float(metrics.texture_kept(0.2 + 0.5 * images[0], images[0])) == pytest.approx(1.0, abs=1e-5)
+    assert float(metrics.texture_kept(0.5 * images[0], images[0], mask=mask)) == pytest.approx(1.0, abs=1e-5)
+    other = images.flip(0)
+    for fn in (metrics.texture_kept, metrics.shape_similarity):
+        single = torch.stack([fn(a, b, mask=mask) for a, b in zip(images, other)])
+        assert torch.allclose(fn(images, other, mask=mask), single, atol=1e-6)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_texture_replaced_by_noise_is_not_kept_but_the_shapes_are(masked):
+    base = textured_base()
+    noise = 0.1 * (torch.rand(base.shape[1:], generator=torch.Generator().manual_seed(7), dtype=F64) - 0.5)
+    image = (blur(base, 2.0) + noise).clamp(0, 1)  # the capture's texture gone, other marks of the same size
+    mask = blob_mask(48, 64) if masked else None
+    texture = float(metrics.texture_kept(image, base, mask=mask))
+    assert abs(texture) < 0.1
+    shapes = float(metrics.shape_similarity(image, base, mask=mask))
+    assert shapes > 0.9
+    # The texture half kept: in between.
+    half = float(metrics.texture_kept((blur(base, 2.0) + base) / 2 + noise / 2, base, mask=mask))
+    assert 0.4 < half < 0.9
+    # Other forms (the scene moved), the same kind of texture: the shapes drop (less with the shared silhouette).
+    moved = torch.roll(base, shifts=(9, 17), dims=(1, 2))
+    assert float(metrics.shape_similarity(moved, base, mask=mask)) < shapes - 0.1
+
+
+def test_texture_kept_and_shapes_of_flat_images_are_defined():
+    grey, black, base = torch.full((3, 48, 64), 0.5, dtype=F64), torch.zeros(3, 48, 64, dtype=F64), textured_base()
+    for a, b in ((grey, base), (base, grey), (grey, grey), (black, black), (grey, black)):
+        texture = metrics.texture_kept(a, b)
+        shapes = metrics.shape_similarity(a, b)
+        assert torch.isfinite(texture) and torch.isfinite(shapes)
+        assert float(texture) == 0.0  # no texture in one of them: nothing kept (documented: 0.0, never NaN)
+        assert 0.0 <= float(shapes) <= 1.0
+    assert float(metrics.shape_similarity(grey, grey)) == pytest.approx(1.0)
+    # A mask with nothing left after the erosion (5 px wide, erode 4 needs 9): 0.0 as well.
+    thin = torch.zeros(48, 64, dtype=torch.bool)
+    thin[10:40, 20:25] = True
+    assert float(metrics.texture_kept(base, base, mask=thin)) == 0.0
+    assert float(metrics.texture_kept(base, base, mask=thin, erode=2)) == pytest.approx(1.0, abs=1e-9)
+    with pytest.raises(ValueError, match="erode"):
+        metrics.texture_kept(base, base, erode=-1)
+
+
+def test_texture_kept_leaves_out_a_band_along_the_silhouette():
+    """Texture both images share only in a band of the mask's edge, less than ``erode`` px wide, does not count."""
+    g = torch.Generator().manual_seed(3)
+    checker = 0.1 * ((torch.arange(48)[:, None] + torch.arange(48)[None]) % 2).to(F64)
+    noise = 0.1 * torch.rand(48, 48, generator=g, dtype=F64)
+    mask = torch.zeros(48, 48, dtype=torch.bool)
+    mask[8:40, 8:40] = True
+    inner = torch.zeros(48, 48, dtype=torch.bool)
+    inner[12:36, 12:36] = True  # the pixels 4 px or more inside the mask's edge
+    base = (0.5 + checker).expand(3, 48, 48)
+    image = (0.5 + torch.where(inner, noise, checker)).expand(3, 48, 48)  # the same texture only in the band
+    assert abs(float(metrics.texture_kept(image, base, mask=mask))) < 0.1
+    assert float(metrics.texture_kept(image, base, mask=mask, erode=0)) > 0.4  # counted: the band and the edge
+    # The band counts where the mask is wider than the image: pixels off the image are not uncovered.
+    assert float(metrics.texture_kept(image, base, mask=torch.ones(48, 48, dtype=torch.bool))) > 0.4
+
+
+# ----------------------------------------------------------------------------------------------------
 # Coverage masks (objects on a black background)
 
 

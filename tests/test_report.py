@@ -199,9 +199,11 @@ def test_evaluator_fast_path_matches_full_renders():
         np.testing.assert_allclose(a.numpy(), b.numpy(), atol=1e-4)
     unstylized = evaluator.measure(base, style)
     assert unstylized["ssim"] == pytest.approx(1.0) and unstylized["gs"] == pytest.approx(1.0)
+    assert unstylized["texture_kept"] == pytest.approx(1.0, abs=1e-5) and unstylized["shapes"] == pytest.approx(1.0)
     assert 0.0 <= unstylized["short_rmse"] < 0.1  # the exact warp's resampling floor
     m = evaluator.measure(recoloured, style)
     assert m["ssim"] < 1.0 and all(v is None or np.isfinite(v) for v in m.values())
+    assert -1.0 <= m["texture_kept"] < 1.0 and 0.0 < m["shapes"] < 1.0
 
 
 def test_report_command_writes_four_sections_and_plots(tmp_path):
@@ -242,6 +244,7 @@ def test_report_command_writes_four_sections_and_plots(tmp_path):
     assert "a single Gaussian covers the view" in text
     assert len(list((out / "logs").glob("*.jsonl"))) == 4  # every run has its own settings
     assert "novel views between them" in text
+    assert "| SSIM | GS | texture kept | shapes | short RMSE |" in text
     data = json.loads((out / "report.json").read_text())
     assert [r["label"] for r in data["runs"]] == ["preview", "paper", "stages 1", "stages 2"]
     assert data["convergence"]["label"] == "preview" and data["convergence"]["steps"]  # most steps, first

@@ -6,6 +6,10 @@ orbit ring: that order is the path along which consistency is measured). Per vie
 - style: sliced Wasserstein distance of colours and of 7 x 7 patches to the style image, which is
   first resized (aspect kept) so that its shorter side matches the first camera's;
 - content: SSIM and gradient-structure similarity to the base render from the same camera;
+- texture and forms, on the pixels the base render covers: ``texture_kept``, the correlation of the
+  luminance high-pass (sigma 2 px) with the base render's, 4 px inside the silhouette (1: the scene's own
+  fine texture is all still there, about 0: replaced, e.g. by the painting's marks), and ``shapes``, SSIM of
+  the luminance blurred by a Gaussian of sigma 3 px (1: the same forms);
 - optional CLIP-S (``--clip``) and DINO-C (``--dino``) with local transformers weights.
 
 Along the path: the stylized render of view i warped into view i + gap with the stylized scene's
@@ -43,7 +47,17 @@ HELP = (
 )
 
 DEFAULT_ORBIT = 8
-PER_VIEW_KEYS = ("sw_colors", "sw_patches", "ssim", "gradient_structure", "clip_s", "dino_c", "alpha_coverage")
+PER_VIEW_KEYS = (
+    "sw_colors",
+    "sw_patches",
+    "ssim",
+    "gradient_structure",
+    "texture_kept",
+    "shapes",
+    "clip_s",
+    "dino_c",
+    "alpha_coverage",
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -201,6 +215,9 @@ def evaluate(args: argparse.Namespace) -> dict:
     )
     ssim = [float(metrics.ssim_per_image(a, b)) for a, b in zip(rgb, base_rgb)]
     structure = [float(metrics.gradient_structure_similarity(a, b)) for a, b in zip(rgb, base_rgb)]
+    covered = [v[1] for v in theirs]  # the base render's alpha: the pixels the scene covers
+    texture = [float(metrics.texture_kept(a, b, mask=m)) for a, b, m in zip(rgb, base_rgb, covered)]
+    shapes = [float(metrics.shape_similarity(a, b, mask=m)) for a, b, m in zip(rgb, base_rgb, covered)]
     clip_s = dino_c = [None] * len(cameras)
     if args.clip:
         from ..evaluation.clip_dino import clip_style_score, load_clip
@@ -222,6 +239,8 @@ def evaluate(args: argparse.Namespace) -> dict:
                 "sw_patches": float(sw_patches[i]),
                 "ssim": ssim[i],
                 "gradient_structure": structure[i],
+                "texture_kept": texture[i],
+                "shapes": shapes[i],
                 "clip_s": clip_s[i],
                 "dino_c": dino_c[i],
                 "alpha_coverage": float((ours[i][1] > threshold).float().mean()),
@@ -277,17 +296,27 @@ def format_report(report: dict) -> str:
         ("SW patch", "sw_patches"),
         ("SSIM", "ssim"),
         ("GS", "gradient_structure"),
+        ("texture kept", "texture_kept"),
+        ("shapes", "shapes"),
         ("CLIP-S", "clip_s"),
         ("DINO-C", "dino_c"),
         ("alpha", "alpha_coverage"),
     )
     width = max([4, *(len(v["name"]) for v in report["per_view"])])
-    lines = [f"{'view':<{width}}" + "".join(f"{title:>10}" for title, _ in columns)]
+    cells = [max(10, len(title) + 2) for title, _ in columns]
+
+    def row_of(name: str, values) -> str:
+        return f"{name:<{width}}" + "".join(f"{_fmt(value):>{cell}}" for value, cell in zip(values, cells))
+
+    lines = [f"{'view':<{width}}" + "".join(f"{title:>{cell}}" for (title, _), cell in zip(columns, cells))]
     for row in report["per_view"]:
-        lines.append(f"{row['name']:<{width}}" + "".join(f"{_fmt(row[key]):>10}" for _, key in columns))
+        lines.append(row_of(row["name"], [row[key] for _, key in columns]))
     lines.append("-" * len(lines[0]))
-    lines.append(f"{'mean':<{width}}" + "".join(f"{_fmt(report['mean'][key]):>10}" for _, key in columns))
-    lines.append("lower is better: SW col, SW patch; higher is better: SSIM, GS, CLIP-S, DINO-C")
+    lines.append(row_of("mean", [report["mean"][key] for _, key in columns]))
+    lines.append(
+        "lower is better: SW col, SW patch, texture kept (less of the base's fine texture); "
+        "higher is better: SSIM, GS, shapes, CLIP-S, DINO-C"
+    )
     lines.append("consistency, masked RMSE of the warped render (lower is better; coverage = valid pixels):")
     for term in ("short_term", "long_term"):
         stylized, base = report["consistency"]["stylized"][term], report["consistency"]["base"][term]

@@ -11,6 +11,8 @@ metric                                   better     compares
 :func:`sliced_wasserstein_patches`       lower      7 x 7 patch distribution, render and style image (masks)
 :func:`ssim_per_image`                   higher     stylized and base render from the same camera (mask)
 :func:`gradient_structure_similarity`    higher     stylized and base render from the same camera (mask)
+:func:`texture_kept`                     lower      fine texture of the stylized and base render (mask)
+:func:`shape_similarity`                 higher     blurred forms of the stylized and base render (mask)
 :func:`consistency_rmse`                 lower      a render warped exactly into a later view, and that view
 :func:`measure_render`                   higher FPS render speed and peak memory of a scene
 :func:`read_stylize_log`                 lower      optimisation time and peak memory from the stylizer's log
@@ -39,7 +41,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from ..method.losses import ssim_map
+from ..method.losses import _blur, gaussian_window, ssim_map
 from ..method.style_distance import (
     ALPHA_THRESHOLD,
     empirical_quantiles,
@@ -54,6 +56,7 @@ from ..util.errors import ConfigError, with_path
 from ..util.machine import peak_rss_mb
 
 GRADIENT_FLOOR = 1e-3  # the gradient magnitude (per pixel, [0, 1] images) below which an image is flat
+TEXTURE_FLOOR = 1e-4  # the RMS luminance high-pass ([0, 1] images) at or below which an image has no texture
 LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709
 
 # The style distances are the method's own (it stops its stages on them); they are metrics here too.
@@ -65,17 +68,21 @@ __all__ = [
     "StylizeLogSummary",
     "consistency_rmse",
     "empirical_quantiles",
+    "gaussian_blur",
     "gradient_structure_similarity",
+    "luminance",
     "masked_rmse",
     "measure_render",
     "peak_rss_mb",
     "read_stylize_log",
+    "shape_similarity",
     "sliced_wasserstein",
     "sliced_wasserstein_colors",
     "sliced_wasserstein_patches",
     "sobel_gradients",
     "sorted_projections",
     "ssim_per_image",
+    "texture_kept",
     "warp_to",
 ]
 
@@ -133,14 +140,39 @@ def ssim_per_image(
     return out if a.ndim == 4 else out[0]
 
 
+def luminance(image: torch.Tensor) -> torch.Tensor:  # [B, 3, H, W] -> [B, 1, H, W]
+    """Rec. 709 luminance 0.2126 R + 0.7152 G + 0.0722 B (:data:`LUMINANCE`) of each image."""
+    weights = torch.tensor(LUMINANCE, dtype=image.dtype, device=image.device).view(1, 3, 1, 1)
+    return (image * weights).sum(1, keepdim=True)
+
+
+def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:  # [B, C, H, W] -> [B, C, H, W]
+    """Separable Gaussian blur of standard deviation ``sigma`` pixels, replicated border.
+
+    The kernel is :func:`dresg_addon.method.losses.gaussian_window` over 2 ceil(3 sigma) + 1 taps (at
+    least 3), normalised to sum 1, so a constant image stays constant; the filter is the SSIM window's
+    (:func:`dresg_addon.method.losses._blur`) on the image padded by replicating its edge pixels, so the
+    image border does not darken. Each channel is blurred on its own.
+
+    >>> x = torch.rand(1, 1, 12, 12)
+    >>> bool(torch.allclose(gaussian_blur(torch.full_like(x, 0.3), 2.0), torch.full_like(x, 0.3)))
+    True
+    """
+    if not (math.isfinite(sigma) and sigma > 0.0):
+        raise ValueError(f"gaussian_blur: sigma must be a positive number of pixels, got {sigma!r}")
+    radius = max(1, math.ceil(3.0 * sigma))
+    window = gaussian_window(2 * radius + 1, sigma, x.dtype, x.device)
+    blurred = _blur(F.pad(x, (radius, radius, radius, radius), mode="replicate"), window)
+    return blurred[..., radius:-radius, radius:-radius]
+
+
 def sobel_gradients(image: torch.Tensor) -> torch.Tensor:  # [B, 3, H, W] -> [B, 2, H, W]
     """Sobel gradient (d/dx, d/dy) of the Rec. 709 luminance, kernels divided by 8, replicate padding.
 
     With the 1/8 normalisation a linear ramp of slope s per pixel has gradient exactly s; replicate
     padding keeps the image border from looking like an edge.
     """
-    weights = torch.tensor(LUMINANCE, dtype=image.dtype, device=image.device).view(1, 3, 1, 1)
-    luma = (image * weights).sum(1, keepdim=True)
+    luma = luminance(image)
     kx = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], dtype=image.dtype, device=image.device)
     kernels = torch.stack([kx, kx.T])[:, None] / 8.0  # [2, 1, 3, 3]
     return F.conv2d(F.pad(luma, (1, 1, 1, 1), mode="replicate"), kernels)
@@ -189,6 +221,99 @@ def gradient_structure_similarity(
         norm_b = torch.where(covered, (gb * gb).sum(1), 0.0).flatten(1).sum(1)
     out = ((dot + c) / torch.sqrt((norm_a + c) * (norm_b + c))).clamp(0.0, 1.0)
     return out if a.ndim == 4 else out[0]
+
+
+def _covered_luminance(ab: torch.Tensor, covered: torch.Tensor | None) -> torch.Tensor:  # -> [B, 1, H, W]
+    """The :func:`luminance` of each image, 0 outside ``covered`` (as on a black background)."""
+    luma = luminance(ab)
+    return luma if covered is None else torch.where(covered[:, None], luma, 0.0)
+
+
+def texture_kept(
+    image: torch.Tensor,  # [3, H, W] or [B, 3, H, W]: the stylized render
+    base: torch.Tensor,  # same shape: the unstylized render from the same camera
+    mask=None,  # [H, W] or [B, H, W]: bool, or alpha
+    sigma: float = 2.0,
+    erode: int = 4,
+) -> torch.Tensor:  # scalar or [B]
+    """How much of the base render's fine texture the image still has: a correlation in [-1, 1].
+
+    With Y the :func:`luminance` and h = Y - :func:`gaussian_blur` (Y, ``sigma``) its high-pass (detail
+    finer than about ``sigma`` px), the value is the Pearson correlation of h_image and h_base over the
+    counted pixels P: sum_P (h_i - mean_P h_i)(h_b - mean_P h_b) / sqrt(sum_P (h_i - mean_P h_i)^2
+    sum_P (h_b - mean_P h_b)^2). 1: the capture's own fine texture is all still there (up to a contrast
+    gain); about 0: it was replaced (a painting's marks, noise, or nothing); negative: inverted.
+
+    Counted pixels: with ``mask`` (bool, or alpha > ``ALPHA_THRESHOLD``; an empty mask counts as
+    covering every pixel), both images are set to 0 outside it (as on a black background, so the
+    background cannot change the value) and a pixel counts only if every pixel within ``erode`` px
+    (the (2 erode + 1)^2 square around it; pixels off the image do not count against it) is covered,
+    so the silhouette's own edge, shared by both renders, is left out. Without a mask every pixel counts.
+
+    Degenerate cases give 0.0, never NaN: no pixel left after the erosion, or either image without
+    texture on the counted pixels (RMS of h_i - mean_P h_i at most :data:`TEXTURE_FLOOR`, e.g. a
+    flat image: there is no texture to keep, or none was kept).
+
+    >>> x = torch.rand(2, 3, 24, 24)
+    >>> [round(v, 6) for v in texture_kept(x, x).tolist()]
+    [1.0, 1.0]
+    >>> float(texture_kept(x[0], torch.full_like(x[0], 0.5)))  # a flat base: nothing to keep
+    0.0
+    """
+    ab, bb = _pair_batch(image, base, "texture_kept")
+    if isinstance(erode, bool) or not isinstance(erode, int) or erode < 0:
+        raise ValueError(f"texture_kept: erode must be an integer >= 0 pixels, got {erode!r}")
+    covered = _pair_mask(mask, ab, "texture_kept")
+    luma_a, luma_b = _covered_luminance(ab, covered), _covered_luminance(bb, covered)
+    high_a = (luma_a - gaussian_blur(luma_a, sigma))[:, 0]  # [B, H, W]
+    high_b = (luma_b - gaussian_blur(luma_b, sigma))[:, 0]
+    if covered is None:
+        counted = torch.ones_like(high_a, dtype=torch.bool)
+    elif erode == 0:
+        counted = covered
+    else:  # max-pooling pads with -inf: pixels off the image are not uncovered
+        uncovered = (~covered)[:, None].to(high_a.dtype)
+        counted = F.max_pool2d(uncovered, 2 * erode + 1, stride=1, padding=erode)[:, 0] == 0
+    weight = counted.to(high_a.dtype)
+    count = weight.flatten(1).sum(1).clamp_min(1.0)[:, None, None]  # [B, 1, 1]
+    da = (high_a - (high_a * weight).flatten(1).sum(1)[:, None, None] / count) * weight
+    db = (high_b - (high_b * weight).flatten(1).sum(1)[:, None, None] / count) * weight
+    var_a = (da * da).flatten(1).sum(1) / count[:, 0, 0]
+    var_b = (db * db).flatten(1).sum(1) / count[:, 0, 0]
+    cov = (da * db).flatten(1).sum(1) / count[:, 0, 0]
+    flat = (var_a <= TEXTURE_FLOOR**2) | (var_b <= TEXTURE_FLOOR**2)  # also: no counted pixel (both 0)
+    scale = torch.sqrt(torch.where(flat, 1.0, var_a * var_b))
+    out = torch.where(flat, 0.0, cov / scale).clamp(-1.0, 1.0)
+    return out if image.ndim == 4 else out[0]
+
+
+def shape_similarity(
+    image: torch.Tensor,  # [3, H, W] or [B, 3, H, W]: the stylized render
+    base: torch.Tensor,  # same shape: the unstylized render from the same camera
+    mask=None,  # [H, W] or [B, H, W]: bool, or alpha
+    sigma: float = 3.0,
+) -> torch.Tensor:  # scalar or [B]
+    """Shapes: SSIM of the forms, with the fine texture blurred away; 1 for the same forms.
+
+    :func:`ssim_per_image` of :func:`gaussian_blur` (Y, ``sigma``) of the image against that of the
+    base, Y the :func:`luminance`: brush marks, noise and texture finer than about ``sigma`` px
+    (the Gaussian's sigma) do not lower it, changed or missing forms and a changed tone layout do.
+
+    With ``mask`` (bool, or alpha > ``ALPHA_THRESHOLD``; an empty one counts as covering every pixel):
+    the luminance is set to 0 outside it before the blur (as on a black background, so the background
+    cannot change the value) and the SSIM is the mean over the covered pixels, as in
+    :func:`ssim_per_image`. Flat images have a defined value (SSIM's constants), never NaN.
+
+    >>> x = torch.rand(3, 24, 24)
+    >>> round(float(shape_similarity(x, x)), 6)
+    1.0
+    """
+    ab, bb = _pair_batch(image, base, "shape_similarity")
+    covered = _pair_mask(mask, ab, "shape_similarity")
+    forms_a = gaussian_blur(_covered_luminance(ab, covered), sigma).expand(-1, 3, -1, -1)
+    forms_b = gaussian_blur(_covered_luminance(bb, covered), sigma).expand(-1, 3, -1, -1)
+    out = ssim_per_image(forms_a, forms_b, mask=covered)
+    return out if image.ndim == 4 else out[0]
 
 
 # ----------------------------------------------------------------------------------------------------

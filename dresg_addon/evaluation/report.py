@@ -11,7 +11,8 @@ Writes ``report.md`` and PNG plots into one folder. The plots are drawn with mat
     cull); the fast path renders the whole scene and the same window is compared.
 (b) ``work_precision.png``: the weight-free metrics of :mod:`.metrics` (sliced Wasserstein style
     distances, SSIM and gradient structure to the base render, cross-view consistency) against the
-    stylization's wall time, for the presets and for stage counts.
+    stylization's wall time, for the presets and for stage counts; its table adds the texture kept and
+    the shapes (:func:`.metrics.texture_kept`, :func:`.metrics.shape_similarity`).
 (c) ``convergence.png``: the fit's error at every fit step (the RMSE after each round of a solved colour
     fit, the Eq. 16 loss of an Adam step) and each stage's distance to its own targets before and after
     its fit, against time, from the stylize log and progress reports of one run.
@@ -432,7 +433,8 @@ class ViewEvaluator:
         return views
 
     def measure(self, scene: GaussianScene, style: np.ndarray) -> dict[str, float | None]:  # style [H, W, 3]
-        """Means over the views: sw_colors, sw_patches, ssim, gs; consistency short and long (masked RMSE)."""
+        """Means over the views: sw_colors, sw_patches, ssim, gs, texture_kept, shapes (on the pixels the base
+        render covers); consistency short and long (masked RMSE)."""
         views = self.base_views if scene is self.base else self._views(scene)
         return self._metrics(views, self._style(style))
 
@@ -451,6 +453,8 @@ class ViewEvaluator:
             "sw_patches": float(metrics.sliced_wasserstein_patches(rgb, style, masks=masks).mean()),
             "ssim": float(torch.stack([metrics.ssim_per_image(a, b, mask=m) for a, b, m in pairs]).mean()),
             "gs": float(torch.stack([metrics.gradient_structure_similarity(a, b, mask=m) for a, b, m in pairs]).mean()),
+            "texture_kept": float(torch.stack([metrics.texture_kept(a, b, mask=m) for a, b, m in pairs]).mean()),
+            "shapes": float(torch.stack([metrics.shape_similarity(a, b, mask=m) for a, b, m in pairs]).mean()),
             "short_rmse": metrics.consistency_rmse(images, depths, alphas, self.cameras, 1).rmse,
             "long_rmse": metrics.consistency_rmse(images, depths, alphas, self.cameras, max(1, n // 2)).rmse,
         }
@@ -619,8 +623,8 @@ def plot_work_precision(axes, rows: list[dict], base: dict) -> None:
 def work_precision_table(rows: list[dict], base: dict) -> str:
     lines = [
         "| run | stages x updates | fit / post steps | proposal | geometry | active views | time (s) "
-        "| SW colour | SW patch | SSIM | GS | short RMSE | long RMSE |",
-        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| SW colour | SW patch | SSIM | GS | texture kept | shapes | short RMSE | long RMSE |",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         c = r["config"]
@@ -628,11 +632,13 @@ def work_precision_table(rows: list[dict], base: dict) -> str:
             f"| {r['label']} | {c['stages']} x {c['updates_per_stage']} | {c['fit_steps']} / {c['post_steps']} "
             f"| {c['proposal_width']}x{c['proposal_height']} | {'on' if c['optimize_geometry'] else 'off'} | {r['views']} "
             f"| {r['seconds']:.1f} | {_fmt(r['sw_colors'])} | {_fmt(r['sw_patches'])} | {_fmt(r['ssim'], 3)} "
-            f"| {_fmt(r['gs'], 3)} | {_fmt(r['short_rmse'])} | {_fmt(r['long_rmse'])} |"
+            f"| {_fmt(r['gs'], 3)} | {_fmt(r.get('texture_kept'), 3)} | {_fmt(r.get('shapes'), 3)} "
+            f"| {_fmt(r['short_rmse'])} | {_fmt(r['long_rmse'])} |"
         )
     lines.append(
         f"| unstylized | | | | | | | {_fmt(base['sw_colors'])} | {_fmt(base['sw_patches'])} | {_fmt(base['ssim'], 3)} "
-        f"| {_fmt(base['gs'], 3)} | {_fmt(base['short_rmse'])} | {_fmt(base['long_rmse'])} |"
+        f"| {_fmt(base['gs'], 3)} | {_fmt(base.get('texture_kept'), 3)} | {_fmt(base.get('shapes'), 3)} "
+        f"| {_fmt(base['short_rmse'])} | {_fmt(base['long_rmse'])} |"
     )
     return "\n".join(lines)
 
@@ -900,6 +906,9 @@ def build_report(options: ReportOptions, say: Callable[[str], None] | None = Non
         "Presets as defined in `dresg_addon.method.config`"
         + (", shrunk for the quick run (see the table)" if options.quick else "")
         + f"; the stage counts F run the default preset ({DEFAULT_PRESET}) with F stages and no early stop. "
+        "Texture kept: the correlation of the luminance high-pass (sigma 2 px) with the unstylized render's, 4 px "
+        "inside the silhouette (1: the scene's own fine texture all still there; lower: more of the painting's); "
+        "shapes: SSIM of the luminance blurred by a Gaussian of sigma 3 px (1: the same forms). "
         "Consistency: the stylized view i warped into view i + gap with rendered depth and the known poses, "
         "masked RMSE.",
         "",

@@ -1,0 +1,68 @@
+"""``bench/quality.py``'s measurements and tables on a tiny scene (the benchmark itself is not run)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import quality  # bench/, on pytest's pythonpath
+
+from dresg_addon.evaluation.stability import tiny_scene
+from dresg_addon.scene.orbit import orbit_cameras
+
+NEW_COLUMNS = {"texture_kept": "texture kept ↓", "shapes": "shapes ↑"}
+
+
+@pytest.fixture(scope="module")
+def case():
+    scene = tiny_scene(120)
+    cameras = orbit_cameras(scene, 4, width=48, height=32)
+    style = np.random.default_rng(0).uniform(0, 1, (40, 56, 3)).astype(np.float32)
+    return scene, cameras, style
+
+
+def test_quality_columns_include_texture_kept_and_shapes():
+    labels = {key: label for key, label, _ in quality.COLUMNS}
+    for key, label in NEW_COLUMNS.items():
+        assert labels[key] == label
+    assert "texture kept" in quality.__doc__ and "shapes" in quality.__doc__
+
+
+def test_quality_evaluate_reports_every_measured_column(case):
+    scene, cameras, style = case
+    recoloured = replace(scene, sh_dc=scene.sh_dc[::-1].copy())
+    measured, views = quality.evaluate(scene, recoloured, cameras, style)
+    assert len(views) == len(cameras)
+    fit_keys = {"min_closed", "fit_ratio"}  # from the stylize log, not from the views
+    for key, _, _ in quality.COLUMNS:
+        if key not in fit_keys:
+            assert key in measured and measured[key] is not None and math.isfinite(measured[key]), key
+    assert -1.0 <= measured["texture_kept"] < 0.99 and 0.0 < measured["shapes"] < 1.0
+    unstylized, _ = quality.evaluate(scene, scene, cameras, style)
+    assert unstylized["texture_kept"] == pytest.approx(1.0, abs=1e-5)
+    assert unstylized["shapes"] == pytest.approx(1.0, abs=1e-5)
+    table = "\n".join(quality.table([("unstylized", {**unstylized, "seconds": 0.0, "peak_rss": 1e9})]))
+    assert all(label in table for label in NEW_COLUMNS.values())
+
+
+def test_quality_verdicts_check_texture_kept_and_shapes_per_scene():
+    def row(texture, shapes, sw=0.5):
+        values = {key: sw for key, _, _ in quality.COLUMNS}
+        return {**values, "texture_kept": texture, "shapes": shapes, "seconds": 1.0, "peak_rss": 1e9}
+
+    results = {
+        ("bonsai", "a"): {"colour-transfer": row(0.9, 0.9, 1.0), "preview": row(0.2, 0.7)},
+        ("bonsai", "b"): {"colour-transfer": row(0.9, 0.9, 1.0), "preview": row(0.3, 0.6)},
+        ("luigi", "a"): {"colour-transfer": row(0.9, 0.9, 1.0), "preview": row(0.5, 0.4)},
+    }
+    text = "\n".join(quality.verdicts(results, ["colour-transfer", "preview"], quick=True))
+    assert "texture kept ↓" in text and "shapes ↑" in text
+    line = next(line for line in text.splitlines() if "per scene" in line)
+    assert "texture kept bonsai 0.250, luigi 0.500" in line and "shapes bonsai 0.650, luigi 0.400" in line
+    assert f"<= {quality.TARGET_TEXTURE_KEPT} on every scene: NOT met" in line
+    assert f">= {quality.TARGET_SHAPES} on every scene: NOT met" in line
+    del results[("luigi", "a")]
+    line = next(line for line in quality.verdicts(results, ["colour-transfer", "preview"], True) if "per scene" in line)
+    assert line.count(": met") == 2
