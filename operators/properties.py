@@ -16,7 +16,8 @@ CONFIG_FIELDS = (
     "post_steps",
     "proposal_width",
     "proposal_height",
-    "content_weight",
+    "stroke_size",
+    "scene_weight",
     "schedule",
     "optimize_geometry",
     "max_views",
@@ -136,12 +137,26 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         min=8,
         default=_default("proposal_height"),
     )
-    content_weight: FloatProperty(
-        name="Keep Scene",
-        description="How much of the scene's own shapes and shading the painted views keep: higher keeps more",
+    stroke_size: FloatProperty(
+        name="Stroke Size",
+        description="How large the painting's brush strokes come out on the scene: 1 paints at the painting's own "
+        "scale in the view, 2 makes every stroke twice as large. Raise it when the splats are larger than the "
+        "strokes (the run says so), so they can carry the marks",
+        min=0.25,
+        max=8.0,
+        soft_min=0.5,
+        soft_max=4.0,
+        default=_default("stroke_size"),
+    )
+    scene_weight: FloatProperty(
+        name="Paint <-> Scene",
+        description="How much of the scene's shapes and light survive the painting: 0 lets the painting redraw "
+        "the forms, 1 keeps the scene's forms and shading. Detail finer than the strokes always comes from the "
+        "painting",
         min=0.0,
-        soft_max=1.0,
-        default=_default("content_weight"),
+        max=1.0,
+        subtype="FACTOR",
+        default=_default("scene_weight"),
     )
     schedule: EnumProperty(
         name="Schedule",

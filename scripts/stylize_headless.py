@@ -28,7 +28,8 @@ OVERRIDES = {  # command-line option -> panel setting
     "post_steps": "post_steps",
     "width": "proposal_width",
     "height": "proposal_height",
-    "content_weight": "content_weight",
+    "stroke_size": "stroke_size",
+    "paint_scene": "scene_weight",
     "schedule": "schedule",
     "geometry": "optimize_geometry",
     "max_views": "max_views",
@@ -95,7 +96,13 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--post-steps", type=int)
     parser.add_argument("--width", type=int, help="proposal width")
     parser.add_argument("--height", type=int, help="proposal height")
-    parser.add_argument("--content-weight", type=float)
+    parser.add_argument("--stroke-size", type=float, help="the painting's scale against the view (1: as now)")
+    parser.add_argument(
+        "--paint-scene",
+        type=float,
+        help="Paint <-> Scene in [0, 1]: how much of the scene's forms the painting may override "
+        "(0 the painting's, 1 the scene's)",
+    )
     parser.add_argument("--schedule")
     parser.add_argument("--geometry", action=argparse.BooleanOptionalAction, help="optimise geometry offsets")
     parser.add_argument("--max-views", type=int)

@@ -5,6 +5,7 @@ the main thread (issue 18). bpy module."""
 import sys
 import threading
 import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +139,52 @@ def test_max_views_applies_to_ticked_cameras(addon, tmp_path):
     settings.max_views = 0
     run, note = prepare_job(bpy.context)
     assert run.views == [0, 1, 2, 3, 4] and note == ""
+
+
+def test_stroke_size_and_paint_scene_reach_the_run(addon, tmp_path):
+    settings_rna = bpy.types.Scene.bl_rna.properties["dresg"].fixed_type.properties
+    stroke, weight = settings_rna["stroke_size"], settings_rna["scene_weight"]
+    assert (stroke.name, weight.name) == ("Stroke Size", "Paint <-> Scene")
+    assert (stroke.soft_min, stroke.soft_max, stroke.hard_min, stroke.hard_max) == (0.5, 4.0, 0.25, 8.0)
+    assert (weight.hard_min, weight.hard_max, weight.subtype) == (0.0, 1.0, "FACTOR")
+    assert "content_weight" not in settings_rna
+    config = addon.dresg_addon.method.config
+    settings = bpy.context.scene.dresg
+    assert settings.stroke_size == config.StylizeConfig().stroke_size
+    assert settings.scene_weight == pytest.approx(config.PRESETS["standard"].scene_weight)
+    _import(tmp_path, _scene())
+    from dresg_addon.util.imageio import write_image
+
+    write_image(tmp_path / "style.png", np.full((8, 8, 3), 0.5, np.float32))
+    settings.style_path = str(tmp_path / "style.png")
+    bpy.ops.dresg.add_orbit_cameras(count=2)
+    settings.stroke_size, settings.scene_weight = 2.5, 0.8
+    run, _ = addon.operators.stylize.prepare_job(bpy.context)
+    assert (run.config.stroke_size, run.config.scene_weight) == pytest.approx((2.5, 0.8))
+    settings.preset = "preview"  # a preset brings its own values back
+    assert settings.scene_weight == pytest.approx(config.PRESETS["preview"].scene_weight)
+    assert settings.stroke_size == config.PRESETS["preview"].stroke_size
+    panel = [args[1] for name, args, kw in _drawn(addon.ui.panels.DRESG_PT_style) if name == "prop"]
+    assert panel.index("stroke_size") < panel.index("scene_weight") < panel.index("preset")
+
+
+def _drawn(panel) -> list:
+    """The layout calls of a panel's draw()."""
+    calls = []
+
+    class Layout:
+        def __getattr__(self, name):
+            def call(*args, **kwargs):
+                calls.append((name, args, kwargs))
+                return Layout()
+
+            return call
+
+        def __setattr__(self, name, value):
+            pass
+
+    panel.draw(types.SimpleNamespace(layout=Layout()), bpy.context)
+    return calls
 
 
 def test_fit_resolution_defaults_to_the_presets_size(addon, tmp_path):

@@ -198,6 +198,8 @@ def test_select_views_prints_a_table_and_json(files, capsys):
         ({"--layer-agreement": "nan"}, "layer_agreement must be >= 0"),
         ({"--strength": "2"}, "strength must be in [0, 1]"),
         ({"--robust-power": "3"}, "robust_power must be in (0, 2]"),
+        ({"--stroke-size": "0.1"}, "stroke_size must be in [0.25, 8]"),
+        ({"--paint-scene": "-0.5"}, "scene_weight must be in [0, 1]"),
         ({"--no-style-keys": None}, "synth backend has none"),
     ],
 )

@@ -175,7 +175,7 @@ def test_a_scaled_scene_gives_the_scaled_stylized_scene(factor):
     """Mean offsets are relative to the scene extent: scaling the scene and cameras scales them alike."""
     scene, cameras = sphere_scene(n=200), ring_cameras()
     # A flat style without the content term: the proposals do not depend on the renders' last bits.
-    config = TINY.with_(stages=1, optimize_geometry=True, content_weight=0.0)
+    config = TINY.with_(stages=1, optimize_geometry=True, scene_weight=0.0)
     base = run(scene, cameras, config=config)
     big, big_cameras = scaled_scene(scene, cameras, factor)
     scaled = run(big, big_cameras, config=config.with_(near=config.near * factor))

@@ -133,6 +133,8 @@ class DRESG_PT_style(ChildPanel, bpy.types.Panel):
             layout.prop(settings, "style_path")
         else:
             layout.template_ID(settings, "style_image", open="image.open")
+        layout.prop(settings, "stroke_size")
+        layout.prop(settings, "scene_weight", slider=True)
         layout.prop(settings, "selection")
         if settings.selection == "GROUP":
             layout.prop_search(settings, "selection_group", context.active_object, "vertex_groups")
@@ -150,7 +152,6 @@ class DRESG_PT_style(ChildPanel, bpy.types.Panel):
         column = layout.column(align=True)
         column.prop(settings, "proposal_width", text="Resolution X")
         column.prop(settings, "proposal_height", text="Y")
-        layout.prop(settings, "content_weight")
         layout.prop(settings, "schedule")
         layout.prop(settings, "optimize_geometry")
 

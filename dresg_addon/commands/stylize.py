@@ -28,7 +28,20 @@ KNOBS = (
     ("--updates", "updates_per_stage", int, "proposal updates per stage S (latent steps or synthesis passes)"),
     ("--fit-steps", "fit_steps", int, "fitting steps per stage M"),
     ("--post-steps", "post_steps", int, "fitting steps after the final colour transfer (0: no post stage)"),
-    ("--content-weight", "content_weight", float, "w_c: how much of the scene's structure the proposals keep"),
+    (
+        "--stroke-size",
+        "stroke_size",
+        float,
+        "the painting's scale against the view, in [0.25, 8]: 1 the painting resampled to the proposal size, "
+        "2 twice that, so its strokes come out twice as large",
+    ),
+    (
+        "--paint-scene",
+        "scene_weight",
+        float,
+        "Paint <-> Scene in [0, 1]: how much of the scene's forms the painting may override "
+        "(0 the painting's, 1 the scene's)",
+    ),
     ("--latent-lr", "latent_lr", float, "Adam learning rate of the latent updates"),
     (
         "--guide-weight",

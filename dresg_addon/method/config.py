@@ -42,7 +42,15 @@ class StylizeConfig:
     model_path: str = ""  # local SD1.5 folder or .safetensors (sd15 only)
     proposal_width: int = 448
     proposal_height: int = 320
-    content_weight: float = 0.15  # w_c
+    # Stroke Size: the painting's scale against the view. 1: the painting resampled to the proposal size; 2: to
+    # twice that on each side, so its strokes come out twice as large in the views (and the synth backend's
+    # content sigma, below which the painting's texture replaces the scene's, twice as wide).
+    stroke_size: float = 1.0
+    # Paint <-> Scene in [0, 1]: how much of the scene's structure the painting may override. 0: the painting
+    # overrides the scene's forms; 1: the scene's forms and light are kept. Texture finer than the strokes always
+    # comes from the painting. Each backend maps it to its own content weight w_c (loop.synth_content_weight,
+    # loop.sd15_content_weight): 0.5 is sd15's paper w_c 0.15 and the synth backend's w_c 1.
+    scene_weight: float = 0.5
     latent_lr: float = 0.05
     use_content_query: bool = True  # ablation "w/o Q_c" when False
     use_style_keys: bool = True  # ablation "w/o K_s"
@@ -125,6 +133,11 @@ class StylizeConfig:
             (self.near > 0, "near must be > 0"),
             (self.scene_extent >= 0 and math.isfinite(self.scene_extent), "scene_extent must be >= 0 (0: measured)"),
             (0 <= self.early_stop < 1, "early_stop must be in [0, 1) (0: off)"),
+            (
+                math.isfinite(self.stroke_size) and 0.25 <= self.stroke_size <= 8,
+                f"stroke_size must be in [0.25, 8] (got {self.stroke_size})",
+            ),
+            (0 <= self.scene_weight <= 1, f"scene_weight must be in [0, 1] (got {self.scene_weight})"),
         ]
         for ok, message in checks:
             if not ok:
@@ -213,15 +226,16 @@ PRESETS: dict[str, StylizeConfig] = {
     # What ``stylize`` runs by default: the quality plateau of the synth backend on a CPU. One synthesis
     # pass per stage, each followed by the solved multi-view fit (Kwatra's EM with the fit as its M-step):
     # on the bonsai x Starry Night (8 views) patch SW 0.0658 / 0.0717 / 0.0837 at the fit size, half and a
-    # quarter, against 0.0704 / 0.0766 / 0.0903 for 6 stages of 6 passes, in less time (early stop). A
-    # content weight of 1 keeps objects whose colour, not brightness, sets them apart (the bonsai's wooden
-    # stand on its dark cloth, which 0.3 repainted as cloth and the fit then smeared) for 8-10% of patch SW.
+    # quarter, against 0.0704 / 0.0766 / 0.0903 for 6 stages of 6 passes, in less time (early stop).
+    # Paint <-> Scene 0.5 (the synth backend's content weight 1) keeps objects whose colour, not brightness,
+    # sets them apart (the bonsai's wooden stand on its dark cloth, which a content weight of 0.3 repainted as
+    # cloth and the fit then smeared) for 8-10% of patch SW.
     "standard": StylizeConfig(
         stages=12,
         updates_per_stage=1,
         fit_steps=30,
         post_steps=30,
-        content_weight=1.0,
+        scene_weight=0.5,
         max_views=16,
         optimize_geometry=False,
         early_stop=0.01,
@@ -232,7 +246,7 @@ PRESETS: dict[str, StylizeConfig] = {
         updates_per_stage=1,
         fit_steps=15,
         post_steps=15,
-        content_weight=1.0,
+        scene_weight=0.5,
         max_views=8,
         optimize_geometry=False,
         early_stop=0.01,

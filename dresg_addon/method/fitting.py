@@ -9,6 +9,7 @@
 - :class:`MultiViewFit`: one Adam step of the fit loss (Eq. 16) over all views, the colour gradients
   fused by PCGrad (Eqs. 17-20) and geometry gradients averaged, then colours clamped and offsets
   projected into their bounds (geometry on, or ``color_fit="adam"``).
+- :func:`splat_footprint`: how wide the splats drawn in the active views are on screen (for the Stroke Size note).
 - :func:`fit_residual`: how far renders are from their targets (RMSE over covered pixels), for the log.
 - :func:`result_scene`: the input scene with the fitted state written back.
 """
@@ -23,6 +24,7 @@ import numpy as np
 import torch
 
 from ..raster import ColorOnlyRenderer, RasterSettings, geometry_tensors, render
+from ..raster.projection import projected_mean_variance, splat_covariances
 from ..raster.sh import SH_C0, sh_basis
 from ..scene.camera import Camera
 from ..scene.gaussians import GaussianScene
@@ -181,6 +183,42 @@ class ViewRenderer:
             constant = f.background.reshape(-1, 3)
             constants.append(constant if offset is None else constant + m.matvec(offset))
         return LinearViews(maps, constants)
+
+
+def splat_footprint(renderer: ViewRenderer, min_alpha: float = 0.5) -> float | None:
+    """The median, over the covered pixels (alpha > ``min_alpha``) of the active views, of the blending-weighted
+    screen-space sigma of the splats drawn there, in pixels at the fit size (the renders' size).
+
+    A splat's sigma is sqrt of the mean of its 2D covariance's two eigenvalues, the 0.3 px^2 low-pass included
+    (:func:`~dresg_addon.raster.projection.projected_mean_variance`): its RMS width, the sigma itself for a round
+    splat, and for a needle between its width and its length, as a mark across it or along it is blurred. A pixel's
+    value is sum_i w_i sigma_i / sum_i w_i over its samples (w = T alpha, the colour-only path's cached weights),
+    so nothing is rendered again. None without the colour-only path (geometry on) or without covered pixels.
+    """
+    if renderer.fast is None:
+        return None
+    covariances = splat_covariances(renderer.quats, renderer.log_scales)
+    values = []
+    with torch.no_grad():
+        for view, camera in zip(renderer.fast, renderer.cameras):
+            drawn = torch.nonzero(view.seen).squeeze(-1)
+            columns = torch.zeros(view.seen.numel(), 2)  # sigma, 1
+            columns[:, 1] = 1.0
+            variance = projected_mean_variance(
+                renderer.means[drawn],
+                covariances[drawn],
+                torch.as_tensor(camera.world_to_camera),
+                camera.fx,
+                camera.fy,
+                camera.width,
+                camera.height,
+            )
+            columns[drawn, 0] = variance.clamp_min(0.0).sqrt()
+            blended = view.map.matvec(columns)  # [P, 2]: sum_i w_i sigma_i, sum_i w_i
+            covered = (view.alpha.reshape(-1) > min_alpha) & (blended[:, 1] > 0)
+            values.append(blended[covered, 0] / blended[covered, 1])
+    values = torch.cat(values)
+    return float(values.median()) if values.numel() else None
 
 
 def feature_extractor(weight: float, dino_path: str, say: Callable[[str], None], device="cpu"):

@@ -47,6 +47,7 @@ from .fitting import (
     fit_residual,
     result_scene,
     seen_gaussians,
+    splat_footprint,
 )
 from .guides import view_guide
 from .optim import make_fit_optimizer, scene_extent
@@ -55,6 +56,7 @@ from .style_distance import sliced_wasserstein_patches
 from .targets import proposal_residual, residual_target
 from .views import ActiveViews, scaled_cameras
 
+STROKE_SIZES = (1.5, 2.0, 3.0, 4.0)  # what the footprint note suggests, the smallest that reaches the splats
 EARLY_STOP_WINDOW = 2  # stages over which the style distance must improve (one stage may pause, e.g. a coarse one)
 STILL_SCENE = 0.005  # RMSE a stage's fit must move the covered pixels by (about one 8-bit level in 0.8) to count
 
@@ -153,20 +155,88 @@ def stage_improvement(distances: Sequence[float], window: int = EARLY_STOP_WINDO
     return (distances[-1 - window] - distances[-1]) / distances[-1 - window]
 
 
+CONTENT_WEIGHT_CAP = 1e3  # the synth backend's w_c at Paint <-> Scene 1: the content decides the coarse bands
+
+
+def synth_content_weight(scene_weight: float) -> float:
+    """The synth backend's content weight w_c for Paint <-> Scene ``scene_weight`` in [0, 1]: x / (1 - x), capped.
+
+    The synth fusion pulls the content's coarse bands in by W / (1 + W), W = w_c x its edge map, so x / (1 - x)
+    makes that pull x on a map of 1: 0 leaves the coarse forms to the painting, 0.5 gives w_c 1 (the presets'
+    value), 1 gives the cap (the content decides the coarse bands); never inf or NaN.
+    """
+    if scene_weight >= 1.0:
+        return CONTENT_WEIGHT_CAP
+    return min(scene_weight / (1.0 - scene_weight), CONTENT_WEIGHT_CAP)
+
+
+def sd15_content_weight(scene_weight: float) -> float:
+    """The sd15 backend's content-query weight w_c (Eq. 8) for Paint <-> Scene ``scene_weight`` in [0, 1]:
+    0.3 x, so 0.5 gives the paper's 0.15 and 1 twice that."""
+    return 0.3 * scene_weight
+
+
 def _proposal_backend(config: StylizeConfig, device):
-    """The configured proposal backend; the run's seed and content weight w_c go to every backend that has them,
-    the ``device`` to sd15 (synth has no network)."""
+    """The configured proposal backend; the run's seed and content weight w_c (from Paint <-> Scene) go to every
+    backend that has them, the stroke scale to synth, the ``device`` to sd15 (synth has no network)."""
     from .proposal import EnergyTerms, make_backend
 
     if config.proposal == "synth":
-        weight = config.content_weight if config.use_content_query else 0.0
-        return make_backend("synth", seed=config.seed, content_weight=weight)
+        weight = synth_content_weight(config.scene_weight) if config.use_content_query else 0.0
+        return make_backend("synth", seed=config.seed, content_weight=weight, content_sigma=stroke_sigma(config))
     backend = make_backend("sd15", model_path=config.model_path, device=device)
     backend.learning_rate = config.latent_lr
     backend.terms = EnergyTerms(
-        config.content_weight, config.use_content_query, config.use_style_keys, config.use_style_values
+        sd15_content_weight(config.scene_weight),
+        config.use_content_query,
+        config.use_style_keys,
+        config.use_style_values,
     )
     return backend
+
+
+def stroke_sigma(config: StylizeConfig) -> float:
+    """The synth backend's stroke scale in pixels of the proposal size: its content sigma x Stroke Size (the
+    scene's forms act above it, the painting's texture below it)."""
+    from .proposal.synth import SynthSettings
+
+    return SynthSettings.content_sigma * config.stroke_size
+
+
+def style_size(config: StylizeConfig) -> tuple[int, int]:
+    """(height, width) the painting is resampled to: the proposal size x Stroke Size, each side rounded."""
+    return (
+        max(1, round(config.stroke_size * config.proposal_height)),
+        max(1, round(config.stroke_size * config.proposal_width)),
+    )
+
+
+def _pixels(value: float) -> str:
+    return f"{value:.1f}".rstrip("0").rstrip(".")
+
+
+def stroke_size_note(footprint: float | None, config: StylizeConfig, fit_scale: float = 1.0) -> str | None:
+    """One line for the user when the splats are wider than the strokes (synth backend), else None.
+
+    ``footprint`` is :func:`~.fitting.splat_footprint` (pixels at the fit size); the strokes' scale is
+    :func:`stroke_sigma` (proposal pixels) x ``fit_scale`` (fit pixels per proposal pixel). The line suggests the
+    smallest of :data:`STROKE_SIZES` whose strokes reach the splats, or says that even the largest does not.
+    """
+    if footprint is None or config.proposal != "synth":
+        return None
+    per_size = stroke_sigma(config.with_(stroke_size=1.0)) * fit_scale  # stroke pixels at Stroke Size 1
+    strokes = per_size * config.stroke_size
+    if footprint <= strokes:
+        return None
+    line = (
+        f"the scene's splats are about {_pixels(footprint)} px wide at the fit size, wider than the strokes at "
+        f"Stroke Size {config.stroke_size:g} ({_pixels(strokes)} px): they will show the painting's colours and "
+        "regions more than its marks; "
+    )
+    larger = [size for size in STROKE_SIZES if size * per_size >= footprint]
+    if larger:
+        return line + f"Stroke Size {larger[0]:g} would let them carry the marks"
+    return line + f"even Stroke Size {STROKE_SIZES[-1]:g} ({_pixels(STROKE_SIZES[-1] * per_size)} px) is not enough"
 
 
 def _resize(image: torch.Tensor, height: int, width: int) -> torch.Tensor:  # [3, H, W]
@@ -242,9 +312,11 @@ class Stylization:
         self.hooks.check_cancel()
 
     def prepare(self, content_images: dict[int, np.ndarray] | None) -> None:
-        """The seen Gaussians and their fit, the proposal references, and the proposal states (resumed or new)."""
+        """The seen Gaussians and their fit, how wide they are on screen, the proposal references, and the proposal
+        states (resumed or new)."""
         self.hooks.report(0, 0, 1, "setup", float("nan"), "preparing renders")
         base_renders = self._set_up_fit()
+        self._footprint_note()
         self._set_up_proposals(base_renders, content_images)
         self._resume_or_encode(base_renders)
 
@@ -309,11 +381,22 @@ class Stylization:
         )
         return base_renders
 
+    def _footprint_note(self) -> None:
+        """How wide the splats are on screen (``footprint_px`` in the first stage's log entry); one line when they are
+        wider than the strokes. The strokes' scale is in proposal pixels, the footprint in fit pixels: a proposal
+        pixel is sqrt(fit pixels / proposal pixels) fit pixels, averaged over the views."""
+        self.footprint = splat_footprint(self.renderer)
+        proposal_pixels = self.config.proposal_width * self.config.proposal_height
+        fit_scale = float(np.mean([math.sqrt(c.width * c.height / proposal_pixels) for c in self.cameras]))
+        note = stroke_size_note(self.footprint, self.config, fit_scale)
+        if note:
+            self.hooks.say(note)
+
     def _set_up_proposals(self, base_renders: list[torch.Tensor], content_images) -> None:
         """The proposal backend and its fixed references at the proposal size: style, contents, coverage."""
         self.backend = _proposal_backend(self.config, self.device)
         style = torch.from_numpy(self.style_rgb).permute(2, 0, 1).contiguous()
-        self.style = _resize(style, *self.size)
+        self.style = _resize(style, *style_size(self.config))  # Stroke Size: the painting's scale against the view
         self.contents = []
         for i, v in enumerate(self.selection.indices):
             photo = None if content_images is None else content_images.get(v)
@@ -495,6 +578,7 @@ class Stylization:
             "views": len(self.cameras),
             "gaussians_optimised": int(self.state.seen.numel()),
             "scene_extent": self.extent,
+            **({"footprint_px": self.footprint} if n == 1 else {}),
             "style_distance": work.distance,
             "base_style_distance": self.distances[0],
         }

@@ -235,3 +235,53 @@ def project_gaussians(
     if keep.numel() < ok.numel():
         index, columns = index[keep], [torch.index_select(c, 0, keep) for c in columns]
     return Projected(index, *columns[:-1])
+
+
+_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))  # the entries of a symmetric 3 x 3 matrix kept
+
+
+def splat_covariances(quats: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:  # -> [N, 6]
+    """The 3D covariance (R S)(R S)^T of each Gaussian as its six entries xx, yy, zz, xy, xz, yz, float32: what
+    :func:`projected_mean_variance` reuses for every view."""
+    q = (quats.float() / quats.float().norm(dim=-1, keepdim=True).clamp_min(1e-30)).unbind(-1)
+    m = torch.stack(_rotation_columns(q), -1).reshape(-1, 3, 3) * torch.exp(log_scales.float())[:, None, :]
+    rows = m.unbind(1)  # each [N, 3]: row i of R S
+    return torch.stack([(rows[i] * rows[j]).sum(-1) for i, j in _PAIRS], -1)
+
+
+def _quadratic_forms(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # [3], [3] -> [6]
+    """Coefficients of a^T S b over the six entries of a symmetric S (as splat_covariances orders them)."""
+    return torch.stack([a[i] * b[j] + (a[j] * b[i] if i != j else 0.0) for i, j in _PAIRS])
+
+
+def projected_mean_variance(
+    means: torch.Tensor,  # [N, 3] world, Gaussians in front of the camera (z > near)
+    covariances: torch.Tensor,  # [N, 6] splat_covariances(quats, log_scales)
+    world_to_camera: torch.Tensor,  # [4, 4]
+    fx: float,
+    fy: float,
+    width: int,
+    height: int,
+) -> torch.Tensor:  # -> [N] float32, pixels^2
+    """The mean of the two eigenvalues of each Gaussian's 2D covariance on screen, the low-pass included:
+    (cxx + cyy) / 2 of :func:`project_gaussians` (the same clamped EWA Jacobian), in float32, without gradients,
+    culling or the conic, for statistics of the splats' size on screen.
+
+    With the Jacobian's rows fx/z (r0 - u r2) and fy/z (r1 - v r2) (r_i the camera rotation's rows),
+    cxx = (fx/z)^2 (r0' S r0 - 2u r0' S r2 + u^2 r2' S r2) + 0.3 and cyy likewise: the five view-constant
+    quadratic forms of each S are one [N, 6] x [6, 5] product, then a few operations per Gaussian."""
+    w2c = world_to_camera.to(means.device, torch.float32)
+    rot = w2c[:3, :3]
+    cam = means.float() @ rot.T + w2c[:3, 3]
+    inv_z = 1.0 / cam[:, 2]
+    lim_x, lim_y = FRUSTUM_GUARD * width / (2.0 * fx), FRUSTUM_GUARD * height / (2.0 * fy)
+    u = (cam[:, 0] * inv_z).clamp(-lim_x, lim_x)
+    v = (cam[:, 1] * inv_z).clamp(-lim_y, lim_y)
+    r0, r1, r2 = rot.unbind(0)
+    coefficients = torch.stack(
+        [_quadratic_forms(a, b) for a, b in ((r0, r0), (r0, r2), (r2, r2), (r1, r1), (r1, r2))], 1
+    )  # [6, 5]
+    s00, s02, s22, s11, s12 = (covariances.float() @ coefficients).unbind(-1)
+    cxx = (fx * inv_z).square() * (s00 - 2.0 * u * s02 + u * u * s22)
+    cyy = (fy * inv_z).square() * (s11 - 2.0 * v * s12 + v * v * s22)
+    return 0.5 * (cxx + cyy) + LOW_PASS

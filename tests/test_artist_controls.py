@@ -1,0 +1,281 @@
+"""Issue 27's artist-facing controls: Stroke Size (the painting's scale against the view) and Paint <-> Scene (how
+much of the scene's forms the painting may override), from the config and the CLI to the backends, and the note
+that says when the scene's splats are wider than the strokes (:func:`~dresg_addon.method.fitting.splat_footprint`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from test_pipeline import TINY, ring_cameras, sphere_scene, textured_style
+
+from dresg_addon import cli
+from dresg_addon.commands.stylize import config_from_args
+from dresg_addon.method import loop
+from dresg_addon.method.bookkeeping import RunHooks, RunRecord
+from dresg_addon.method.config import PRESETS, StylizeConfig, preset
+from dresg_addon.method.fitting import ViewRenderer, seen_gaussians, splat_footprint
+from dresg_addon.method.loop import (
+    CONTENT_WEIGHT_CAP,
+    Stylization,
+    _proposal_backend,
+    sd15_content_weight,
+    stroke_size_note,
+    stylize,
+    synth_content_weight,
+)
+from dresg_addon.method.proposal.synth import SynthBackend, SynthSettings
+from dresg_addon.raster import RasterSettings
+from dresg_addon.raster.projection import project_gaussians, projected_mean_variance, splat_covariances
+from dresg_addon.scene.camera import Camera, look_at
+from dresg_addon.scene.gaussians import SH_C0, GaussianScene
+from dresg_addon.util.errors import ConfigError
+
+# --- the config -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("value", [0.25, 1.0, 2.5, 8.0])
+def test_stroke_size_in_range_is_accepted(value):
+    assert StylizeConfig(stroke_size=value).stroke_size == value
+
+
+@pytest.mark.parametrize("value", [0.0, 0.2, 8.5, -1.0, math.nan, math.inf])
+def test_stroke_size_out_of_range_is_one_line_config_error(value):
+    with pytest.raises(ConfigError, match=r"stroke_size must be in \[0.25, 8\]") as error:
+        StylizeConfig(stroke_size=value)
+    assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("value", [0.0, 0.5, 1.0])
+def test_scene_weight_in_range_is_accepted(value):
+    assert StylizeConfig(scene_weight=value).scene_weight == value
+
+
+@pytest.mark.parametrize("value", [-0.1, 1.01, math.nan, math.inf])
+def test_scene_weight_out_of_range_is_one_line_config_error(value):
+    with pytest.raises(ConfigError, match=r"scene_weight must be in \[0, 1\]") as error:
+        StylizeConfig(scene_weight=value)
+    assert "\n" not in str(error.value)
+
+
+def test_defaults_and_presets_keep_the_content_weights_they_had():
+    assert not hasattr(StylizeConfig(), "content_weight")
+    assert StylizeConfig().stroke_size == 1.0 and StylizeConfig().scene_weight == 0.5
+    assert sd15_content_weight(StylizeConfig().scene_weight) == pytest.approx(0.15)  # the paper's w_c
+    for name in ("standard", "preview"):
+        assert synth_content_weight(PRESETS[name].scene_weight) == pytest.approx(1.0)  # the presets' old w_c
+
+
+# --- Paint <-> Scene: the backends' content weights -----------------------------------------------------
+
+
+def test_scene_weight_maps_to_each_backends_content_weight():
+    assert synth_content_weight(0.0) == 0.0
+    assert synth_content_weight(0.5) == pytest.approx(1.0)
+    assert synth_content_weight(1.0) == CONTENT_WEIGHT_CAP
+    assert synth_content_weight(1.0 - 1e-12) == CONTENT_WEIGHT_CAP
+    assert sd15_content_weight(0.0) == 0.0
+    assert sd15_content_weight(0.5) == pytest.approx(0.15)
+    assert sd15_content_weight(1.0) == pytest.approx(0.3)
+    weights = [synth_content_weight(x) for x in np.linspace(0, 1, 101)] + [sd15_content_weight(x) for x in (0, 1)]
+    assert all(math.isfinite(w) and w >= 0 for w in weights)
+    assert weights[:101] == sorted(weights[:101])  # more scene, more content weight
+
+
+@pytest.mark.parametrize(("scene_weight", "expected"), [(0.0, 0.0), (0.5, 1.0), (1.0, CONTENT_WEIGHT_CAP)])
+def test_the_synth_backend_gets_the_mapped_weight_and_the_stroke_scale(scene_weight, expected):
+    backend = _proposal_backend(StylizeConfig(scene_weight=scene_weight, stroke_size=3.0), None)
+    assert isinstance(backend, SynthBackend)
+    assert backend.settings.content_weight == pytest.approx(expected)
+    assert backend.settings.content_sigma == pytest.approx(3.0 * SynthSettings.content_sigma)
+    ablated = _proposal_backend(StylizeConfig(scene_weight=scene_weight, use_content_query=False), None)
+    assert ablated.settings.content_weight == 0.0
+
+
+# --- Stroke Size: the painting the backend and the style distance see ------------------------------------
+
+
+PREPARE_STAGE, SLICED_WASSERSTEIN = SynthBackend.prepare_stage, loop.sliced_wasserstein_patches
+
+
+def _recorded_run(monkeypatch, stroke_size: float):
+    """A one-stage run at ``stroke_size``: the style's shape as the backend and the style distance got it."""
+    seen = {"backend": [], "distance": []}
+    prepare, sliced = PREPARE_STAGE, SLICED_WASSERSTEIN
+
+    def prepare_stage(self, states, style_image, contents, coverages):
+        seen["backend"].append(tuple(style_image.shape))
+        seen["sigma"] = self.settings.content_sigma
+        seen["contents"] = tuple(contents[0].shape)
+        return prepare(self, states, style_image, contents, coverages)
+
+    def distance(images, style, **kwargs):
+        seen["distance"].append(tuple(style.shape))
+        return sliced(images, style, **kwargs)
+
+    monkeypatch.setattr(SynthBackend, "prepare_stage", prepare_stage)
+    monkeypatch.setattr(loop, "sliced_wasserstein_patches", distance)
+    config = TINY.with_(stages=1, updates_per_stage=1, post_steps=1, stroke_size=stroke_size)
+    result = stylize(sphere_scene(), ring_cameras(), textured_style(60, 80), config)
+    assert result.log[0]["footprint_px"] > 0 and "footprint_px" not in result.log[-1]  # the first stage's entry only
+    return seen
+
+
+def test_stroke_size_two_gives_the_backend_a_painting_twice_the_size(monkeypatch):
+    one, two = _recorded_run(monkeypatch, 1.0), _recorded_run(monkeypatch, 2.0)
+    assert one["contents"] == two["contents"] == (3, 24, 32)  # the views stay at the proposal size
+    assert set(one["backend"]) == set(one["distance"]) == {(3, 24, 32)}
+    assert set(two["backend"]) == set(two["distance"]) == {(3, 48, 64)}
+    assert two["sigma"] == pytest.approx(2 * one["sigma"]) and one["sigma"] == SynthSettings.content_sigma
+
+
+def test_stroke_size_rounds_each_side():
+    assert loop.style_size(StylizeConfig(proposal_width=448, proposal_height=320, stroke_size=1.5)) == (480, 672)
+    assert loop.style_size(StylizeConfig(proposal_width=33, proposal_height=21, stroke_size=0.25)) == (5, 8)
+
+
+# --- the CLI ----------------------------------------------------------------------------------------------
+
+
+def _stylize_args(*extra: str):
+    return cli.build_parser().parse_args(["stylize", "scene.ply", "--style", "s.png", "--out", "o.ply", *extra])
+
+
+def test_cli_flags_parse_into_the_config():
+    config = config_from_args(_stylize_args("--stroke-size", "2.5", "--paint-scene", "0.8"))
+    assert (config.stroke_size, config.scene_weight) == (2.5, 0.8)
+    default = config_from_args(_stylize_args())
+    assert (default.stroke_size, default.scene_weight) == (1.0, preset("standard").scene_weight)
+    with pytest.raises(ConfigError, match="scene_weight"):
+        config_from_args(_stylize_args("--paint-scene", "1.5"))
+    with pytest.raises(ConfigError, match="stroke_size"):
+        config_from_args(_stylize_args("--stroke-size", "9"))
+
+
+def test_the_old_content_weight_flag_is_gone(capsys):
+    with pytest.raises(SystemExit):
+        _stylize_args("--content-weight", "1")
+    assert "--content-weight" in capsys.readouterr().err
+    help_text = cli.build_parser()._subparsers._group_actions[0].choices["stylize"].format_help()
+    assert "--paint-scene" in help_text and "--stroke-size" in help_text and "--content-weight" not in help_text
+
+
+def test_the_headless_script_takes_both_flags():
+    import stylize_headless
+
+    args = stylize_headless.parse_args(
+        ["--ply", "a.ply", "--style", "s.png", "--out", "o.ply", "--stroke-size", "3", "--paint-scene", "0.2"]
+    )
+    assert (args.stroke_size, args.paint_scene) == (3.0, 0.2)
+    assert stylize_headless.OVERRIDES["stroke_size"] == "stroke_size"
+    assert stylize_headless.OVERRIDES["paint_scene"] == "scene_weight"
+    assert "content_weight" not in stylize_headless.OVERRIDES
+
+
+# --- the splats' footprint ----------------------------------------------------------------------------------
+
+
+def plane_scene(sigma_px: float, fx: float = 50.0, distance: float = 2.0, half: float = 0.5) -> GaussianScene:
+    """Round, nearly opaque splats on a grid in the plane z = ``distance`` in front of :func:`plane_camera`, each
+    ``sigma_px`` pixels wide on screen (at the image centre), spaced so that they cover their square."""
+    scale = sigma_px * distance / fx
+    step = 1.2 * scale
+    axis = np.arange(-half, half + 1e-9, step)
+    xs, ys = np.meshgrid(axis, axis)
+    n = xs.size
+    means = np.stack([xs.ravel(), ys.ravel(), np.full(n, distance)], 1)
+    colors = np.random.default_rng(0).uniform(0.2, 0.8, (n, 3))
+    return GaussianScene(
+        means=means.astype(np.float32),
+        log_scales=np.full((n, 3), math.log(scale), np.float32),
+        quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        opacity_logits=np.full(n, 4.0, np.float32),
+        sh_dc=((colors - 0.5) / SH_C0).astype(np.float32),
+    )
+
+
+def plane_camera(name: str = "front", fx: float = 50.0, width: int = 64, height: int = 48) -> Camera:
+    return Camera(width, height, fx, fx, width / 2, height / 2, look_at([0, 0, 0.0], [0, 0, 1.0]), name)
+
+
+def _footprint(scene: GaussianScene, cameras) -> float:
+    settings = RasterSettings()
+    seen, fast = seen_gaussians(scene, cameras, settings, False)
+    return splat_footprint(ViewRenderer(scene, cameras, seen, settings, False, fast))
+
+
+@pytest.mark.parametrize("sigma_px", [1.0, 3.0, 6.0])
+def test_footprint_of_splats_of_a_known_screen_size(sigma_px):
+    expected = math.sqrt(sigma_px**2 + 0.3)  # the rasterizer's 0.3 px^2 low-pass widens every splat
+    footprint = _footprint(plane_scene(sigma_px), [plane_camera(), plane_camera("again")])
+    assert footprint == pytest.approx(expected, rel=0.1)
+
+
+def test_footprint_is_none_without_the_colour_only_path():
+    scene, cameras = plane_scene(2.0), [plane_camera()]
+    settings = RasterSettings()
+    seen, _ = seen_gaussians(scene, cameras, settings, True)
+    assert splat_footprint(ViewRenderer(scene, cameras, seen, settings, False, None)) is None
+
+
+def test_projected_mean_variance_is_the_projections_covariance_trace():
+    rng = np.random.default_rng(3)
+    n = 500
+    means = torch.from_numpy(np.stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n), rng.uniform(1.5, 4, n)], 1))
+    quats = torch.from_numpy(rng.normal(size=(n, 4)))
+    log_scales = torch.from_numpy(rng.uniform(-4, -1, (n, 3)))
+    camera = look_at([0.1, -0.2, -0.3], [0, 0, 2.0])
+    w2c = torch.as_tensor(camera, dtype=torch.float64)
+    projected = project_gaussians(means, quats, log_scales, w2c, 60.0, 55.0, 32.0, 24.0, 64, 48, 0.01)
+    index = projected.index
+    mine = projected_mean_variance(
+        means[index].float(), splat_covariances(quats[index], log_scales[index]), w2c, 60.0, 55.0, 64, 48
+    )
+    torch.testing.assert_close(mine.double(), (projected.cxx + projected.cyy) / 2, rtol=1e-4, atol=1e-6)
+
+
+# --- the note when the splats are wider than the strokes ---------------------------------------------------
+
+
+STROKE = SynthSettings.content_sigma  # the strokes' scale in pixels at Stroke Size 1
+
+
+def _px(value: float) -> str:
+    return f"{value:.1f}".rstrip("0").rstrip(".")
+
+
+def test_the_note_suggests_the_smallest_stroke_size_that_reaches_the_splats():
+    config = StylizeConfig()
+    note = stroke_size_note(2.85 * STROKE, config)
+    assert note.startswith(
+        f"the scene's splats are about {_px(2.85 * STROKE)} px wide at the fit size, wider than the strokes at "
+    )
+    assert f"Stroke Size 1 ({_px(STROKE)} px)" in note and note.endswith("Stroke Size 3 would let them carry the marks")
+    assert stroke_size_note(1.45 * STROKE, config).endswith("Stroke Size 1.5 would let them carry the marks")
+    assert stroke_size_note(1.9 * STROKE, config).endswith("Stroke Size 2 would let them carry the marks")
+    assert f"even Stroke Size 4 ({_px(4 * STROKE)} px) is not enough" in stroke_size_note(4.5 * STROKE, config)
+    assert stroke_size_note(0.95 * STROKE, config) is None
+    assert stroke_size_note(1.45 * STROKE, config.with_(stroke_size=1.5)) is None
+    assert stroke_size_note(1.9 * STROKE, config, fit_scale=2.0) is None  # a proposal pixel is 2 fit pixels
+    assert stroke_size_note(2.85 * STROKE, config.with_(proposal="sd15")) is None  # no stroke scale
+    assert stroke_size_note(None, config) is None
+
+
+@pytest.mark.parametrize(("sigma_px", "says"), [(2.5 * STROKE, True), (0.5 * STROKE, False)])
+def test_a_run_says_when_the_splats_are_wider_than_the_strokes(sigma_px, says):
+    messages: list[str] = []
+    config = TINY.with_(stages=1, post_steps=0, proposal_width=96, proposal_height=72)  # the fit size: 1 to 1
+    cameras = [plane_camera(fx=100.0, width=96, height=72), plane_camera("again", fx=100.0, width=96, height=72)]
+    run = Stylization(
+        plane_scene(sigma_px, fx=100.0), textured_style(), config, RunHooks(messages=messages.append), RunRecord()
+    )
+    run.select_views(cameras, None)
+    run.prepare(None)  # the note comes right after the fit is set up
+    notes = [m for m in messages if "wider than the strokes" in m]
+    assert len(notes) == (1 if says else 0), messages
+    if says:
+        assert "Stroke Size 3 would let them carry the marks" in notes[0]
+    assert run.footprint == pytest.approx(math.sqrt(sigma_px**2 + 0.3), rel=0.1)
