@@ -254,7 +254,8 @@ def run_case(spec: dict) -> dict:
     elif row == "colour-transfer":
         out = colour_transfer_scene(scene, train, style)
     else:
-        config = preset(row, log_optimum=True, **spec.get("overrides", {}))
+        name, changes = row_settings(row)
+        config = preset(name, log_optimum=True, **spec.get("overrides", {}), **changes)
         result = stylize(scene, train, style, config)
         out, log = result.scene, result.log
     # The time a user waits: the diagnostic solves for the logged optimum left out.
@@ -278,6 +279,25 @@ def run_case(spec: dict) -> dict:
         "stages": len(stages),
         "views": stages[0]["views"] if stages else 0,
     }
+
+
+def row_settings(row: str) -> tuple[str, dict]:
+    """A stylizer row's preset and its changed settings: ``standard@stroke_size=2,scene_weight=0.7``."""
+    from dataclasses import fields
+
+    from dresg_addon.method.config import StylizeConfig
+
+    name, _, rest = row.partition("@")
+    types = {f.name: f.type for f in fields(StylizeConfig)}
+    changes = {}
+    for item in filter(None, rest.split(",")):
+        key, _, value = item.partition("=")
+        if key not in types:
+            raise SystemExit(f"quality bench: {key!r} in row {row!r} is not a StylizeConfig setting")
+        changes[key] = {"int": int, "float": float, "bool": lambda v: v.lower() in ("1", "true", "on")}.get(
+            types[key], str
+        )(value)
+    return name, changes
 
 
 def run_baseline(spec: dict) -> dict:
@@ -410,7 +430,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--scenes", default="bonsai,luigi,demo", help="comma-separated: bonsai, luigi, demo")
     parser.add_argument("--styles", help="comma-separated style names (default: every shared painting, or the demo's)")
-    parser.add_argument("--rows", default=",".join(ROWS), help="comma-separated rows (default: all)")
+    parser.add_argument(
+        "--rows",
+        default=",".join(ROWS),
+        help="comma-separated rows (default: all); a stylizer row may change settings, e.g. "
+        "'standard;standard@stroke_size=2' (rows separated by ';' when a row has a comma)",
+    )
     parser.add_argument("--markdown", metavar="FILE", help="also write the report to FILE (markdown)")
     parser.add_argument(
         "--json", metavar="FILE", help="also write every measurement to FILE (rewritten after each pair)"
@@ -439,8 +464,8 @@ def main(argv: list[str] | None = None) -> int:
     styles = [s for s in styles if s in GENERATED or style_path(s) is not None] or ["demo"]
     if args.quick:
         scenes, styles = scenes[:1] if "demo" not in scenes else ["demo"], styles[:2]
-    rows = [r for r in args.rows.split(",") if r]
-    unknown_rows = [r for r in rows if r not in ROWS]
+    rows = [r for r in args.rows.split(";" if ";" in args.rows else ",") if r]
+    unknown_rows = [r for r in rows if r.partition("@")[0] not in ROWS]
     if unknown_rows:
         parser.error(f"unknown row(s): {', '.join(unknown_rows)} (choose from {', '.join(ROWS)})")
     common = {**size, "threads": args.threads, "figures": args.figures}

@@ -7,7 +7,15 @@ into the fields, and :meth:`DRESG_PG_settings.config` turns the fields back into
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from ..dresg_addon.method.config import DEFAULT_PRESET, PRESETS, SCHEDULES, StylizeConfig, preset
+from ..dresg_addon.method.config import (
+    DEFAULT_PRESET,
+    PRESETS,
+    SCHEDULES,
+    StylizeConfig,
+    preset,
+    preset_description,
+    preset_label,
+)
 
 # Panel field -> StylizeConfig field, copied by a preset and read back by config().
 CONFIG_FIELDS = (
@@ -36,20 +44,6 @@ SCHEDULE_LABELS = {
     "triangle": ("Triangle", "Like Balanced, rising and falling linearly over the stages"),
     "timestep-cosine": ("Cosine", "Like Balanced, following the stage number instead of the noise level"),
 }
-
-PRESET_LABELS = {
-    "standard": (
-        "Standard",
-        "Up to 6 stages, stopping once the look settles; up to 16 views. About 3 min for 273k splats on 2 cores",
-    ),
-    "preview": ("Preview", "A quick look: up to 4 stages and 8 views. Under a minute for 273k splats on 2 cores"),
-    "paper": ("Paper (GPU)", "The paper's exact settings: 20 stages with geometry offsets. Hours on a CPU"),
-    "cpu": (
-        "Paper, Colours Only",
-        "The paper's 20 stages, fitting colours only. About 15 min for 273k splats on 2 cores",
-    ),
-}
-
 
 def _default(name: str):
     return getattr(PRESETS[DEFAULT_PRESET], name)
@@ -89,7 +83,7 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
     preset: EnumProperty(
         name="Preset",
         description="Fill the settings below for a speed and quality; you can change them afterwards",
-        items=[(name, *PRESET_LABELS[name]) for name in PRESETS],
+        items=[(name, preset_label(name), preset_description(name)) for name in PRESETS],
         default=DEFAULT_PRESET,
         update=_apply_preset,
     )

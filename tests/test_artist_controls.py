@@ -279,3 +279,15 @@ def test_a_run_says_when_the_splats_are_wider_than_the_strokes(sigma_px, says):
     if says:
         assert "Stroke Size 3 would let them carry the marks" in notes[0]
     assert run.footprint == pytest.approx(math.sqrt(sigma_px**2 + 0.3), rel=0.1)
+
+
+def test_every_preset_has_a_label_and_a_description_read_from_its_settings():
+    from dresg_addon.method.config import PRESET_INFO, PRESETS, preset_description, preset_label
+
+    assert set(PRESET_INFO) == set(PRESETS)
+    for name, config in PRESETS.items():
+        text = preset_description(name)
+        assert preset_label(name) and text.endswith(PRESET_INFO[name][2][1:])
+        assert f"{config.stages} stages" in text
+        assert (f"up to {config.max_views} views" in text) == bool(config.max_views)
+        assert ("colours only" in text) == (not config.optimize_geometry)

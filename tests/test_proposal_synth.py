@@ -723,3 +723,23 @@ def test_a_guide_holds_the_synthesis_to_it_where_it_has_weight():
     bad[0, 0, 0] = float("nan")
     with pytest.raises(NumericalError, match="guide"):
         backend.propose(state, TIMESTEPS, style, state, guide=(bad, weight))
+
+
+@pytest.mark.parametrize("stroke_size, period", [(1.0, 8.0), (2.0, 16.0)])
+def test_stroke_size_scales_the_marks(stroke_size, period):
+    from dresg_addon.method.config import StylizeConfig
+    from dresg_addon.method.loop import _resize, stroke_sigma, style_size
+
+    height, width = 96, 128
+    content = 0.5 + 0.02 * torch.rand(3, height, width, generator=torch.Generator().manual_seed(1))
+    _, x = torch.meshgrid(torch.arange(96.0), torch.arange(128.0), indexing="ij")
+    on = (x // 4) % 2  # vertical stripes 8 px apart at the view's size
+    painting = torch.stack([0.2 + 0.6 * on, 0.3 + 0.4 * on, 0.5 - 0.2 * on])
+    config = StylizeConfig(proposal_width=width, proposal_height=height, stroke_size=stroke_size)
+    style = _resize(painting, *style_size(config))  # what the loop hands the backend
+    backend = SynthBackend(content_weight=1.0, content_sigma=stroke_sigma(config))
+    out, _ = backend.propose(content, (951, 751, 501, 336, 171, 1), style, content)
+    rows = out[0, 8:-8]
+    power = torch.fft.rfft(rows - rows.mean(1, keepdim=True), dim=1).abs().square().mean(0)
+    k = int(power[2:].argmax()) + 2  # the dominant horizontal frequency, the content's flat field left out
+    assert width / k == pytest.approx(period) and float(power[k] / power[2:].sum()) > 0.5

@@ -8,7 +8,16 @@ import time
 from dataclasses import fields
 from pathlib import Path
 
-from ..method.config import COLOR_FITS, DEFAULT_PRESET, PRESETS, PROPOSALS, SCHEDULES, SH_REST_MODES, preset
+from ..method.config import (
+    COLOR_FITS,
+    DEFAULT_PRESET,
+    PRESETS,
+    PROPOSALS,
+    SCHEDULES,
+    SH_REST_MODES,
+    preset,
+    preset_description,
+)
 from ..util.errors import ConfigError, WriteError
 from ._common import (
     add_background_option,
@@ -101,8 +110,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--preset",
         choices=sorted(PRESETS),
         default=DEFAULT_PRESET,
-        help="standard (default): the quality plateau on a CPU; preview: quick look; paper: exact defaults; "
-        "cpu: the paper's schedule, colour-only fitting",
+        help="; ".join(f"{name}: {preset_description(name)}" for name in PRESETS),
     )
     parser.add_argument(
         "--proposal",

@@ -466,7 +466,7 @@ class Stylization:
 
     def residual_targets(self, stage: Stage) -> list[torch.Tensor]:
         """Sec. 4.2, Eqs. 10-12: each view's render moved by gamma_n x the proposal's residual."""
-        targets, gamma = [], self.gammas[stage.index - 1] * self.backend.residual_scale
+        targets, gamma = [], self.gammas[stage.index - 1]
         space = "logit" if self.config.logit_space else "image"
         self.work.renders = self.renderer.all(self.state)
         for i, image in enumerate(self.work.renders):

@@ -72,9 +72,6 @@ class ProposalBackend(ABC):
     """Encode / decode / propose: what the pipeline needs of any proposal backend."""
 
     name: str = "base"
-    # How gamma_n acts on this backend's residual (Eq. 12 with gamma_n x residual_scale): 1 for a latent
-    # move, less for a backend whose proposal is a fresh image rather than a small move (synth).
-    residual_scale: float = 1.0
     # Whether ``propose`` keeps to a guide (what earlier views proposed, seen from this view), so that
     # views agree; the loop builds guides only for backends that use them.
     takes_guides: bool = False

@@ -37,7 +37,7 @@ How the paper's quantities map onto it (Sec. 4.1, Algorithm 1 lines 3-5):
   content plus noise of 50 grey levels), so early stages invent strokes in flat regions and late ones
   do not.
 - Proposal-render residual: the proposal is the synthesis, and gamma_k acts on its whole residual as in
-  Eq. 12 (``residual_scale`` 1). At half strength (the target half-way to the synthesis where gamma_k is
+  Eq. 12. At half strength (the target half-way to the synthesis where gamma_k is
   1) every stage's target kept half of the render's own texture, which is the capture's: on the bonsai
   x Starry Night (``preview``) the novel views kept 0.24 of it at half strength and 0.16 at full, and
   came 2-4% closer to the painting at every scale.
@@ -501,7 +501,6 @@ class SynthBackend(ProposalBackend):
     """
 
     name = "synth"
-    residual_scale = 1.0  # the paper's gamma_k on the whole synthesis (module docstring)
     takes_guides = True
 
     def __init__(self, settings: SynthSettings | None = None, **overrides):
