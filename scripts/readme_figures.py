@@ -8,7 +8,8 @@
 Every picture is a novel view of the benchmark (a camera between the ones the scene was stylized from), so
 the figure shows what the table measures, rendered at twice the fit size and cropped to the fit size around
 the object, so that marks can be seen. Rows are scene x style pairs; columns: the unstylized scene, the
-colour-transfer baseline, the ``standard`` preset (or ``--row``), and the painting at the same scale (its
+colour-transfer baseline, the ``standard`` preset (or the bench rows of ``--columns``, e.g. Stroke Size 1, 2
+and 3 as ``standard@stroke_size=1;...``), and the painting at the same scale (its
 shorter side twice the fit height, as the metrics resample it), centre-cropped. Needs the shared
 paintings (../shared/data/styles) for the style column; ``demo`` and ``lines`` are generated.
 """
@@ -40,7 +41,12 @@ def main() -> int:
     parser.add_argument("--figures", required=True, help="the folder bench/quality.py --figures wrote")
     parser.add_argument("--pairs", required=True, help="comma-separated scene:style pairs, one row each")
     parser.add_argument("--view", type=int, default=3, help="novel-view index (as written by --figure-views)")
-    parser.add_argument("--row", default="standard", help="the stylized row to show (default: standard)")
+    parser.add_argument(
+        "--columns",
+        default="unstylized;colour-transfer;standard",
+        help="';'-separated bench rows, one column each, before the painting (default: "
+        "unstylized;colour-transfer;standard; a row may carry settings, e.g. standard@stroke_size=2)",
+    )
     parser.add_argument("--out", default=str(REPO / "docs" / "before_after.jpg"))
     args = parser.parse_args()
     folder = Path(args.figures)
@@ -49,7 +55,7 @@ def main() -> int:
         scene, style = pair.split(":")
         images = [
             read_rgb(folder / f"{scene}_{style}_{row}_v{args.view:02d}.png")
-            for row in ("unstylized", "colour-transfer", args.row)
+            for row in args.columns.split(";")
         ]
         height, width = images[0].shape[0] // 2, images[0].shape[1] // 2  # the fit size: a 2x crop of the object
         top, left = object_window(images[0], width, height)

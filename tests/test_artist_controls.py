@@ -148,7 +148,7 @@ def test_cli_flags_parse_into_the_config():
     config = config_from_args(_stylize_args("--stroke-size", "2.5", "--paint-scene", "0.8"))
     assert (config.stroke_size, config.scene_weight) == (2.5, 0.8)
     default = config_from_args(_stylize_args())
-    assert (default.stroke_size, default.scene_weight) == (1.0, preset("standard").scene_weight)
+    assert (default.stroke_size, default.scene_weight) == (preset("standard").stroke_size, preset("standard").scene_weight)
     with pytest.raises(ConfigError, match="scene_weight"):
         config_from_args(_stylize_args("--paint-scene", "1.5"))
     with pytest.raises(ConfigError, match="stroke_size"):

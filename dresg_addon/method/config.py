@@ -226,18 +226,22 @@ PRESETS: dict[str, StylizeConfig] = {
     # multiply per view instead of a full re-render), which makes the paper's schedule practical on a CPU.
     "cpu": StylizeConfig(optimize_geometry=False),
     # What ``stylize`` runs by default: the quality plateau of the synth backend on a CPU. One synthesis
-    # pass per stage, each followed by the solved multi-view fit (Kwatra's EM with the fit as its M-step):
-    # on the bonsai x Starry Night (8 views) patch SW 0.0658 / 0.0717 / 0.0837 at the fit size, half and a
-    # quarter, against 0.0704 / 0.0766 / 0.0903 for 6 stages of 6 passes, in less time (early stop).
-    # Paint <-> Scene 0.5 (the synth backend's content weight 1) keeps objects whose colour, not brightness,
-    # sets them apart (the bonsai's wooden stand on its dark cloth, which a content weight of 0.3 repainted as
-    # cloth and the fit then smeared) for 8-10% of patch SW.
+    # pass per stage, each followed by the solved multi-view fit (Kwatra's EM with the fit as its M-step),
+    # stopping once the look settles. Paint <-> Scene 0.5 (the synth backend's content weight 1) keeps objects
+    # whose colour, not brightness, sets them apart (the bonsai's wooden stand on its dark cloth); 0.7 kept no
+    # more of the forms (bonsai x Starry Night: shapes 0.50 against 0.51). Measured on 8 novel views of
+    # bonsai x Starry Night (preview): Stroke Size 2 paints marks a person sees as strokes where 1 leaves
+    # speckle (the capture's texture kept 0.07 against 0.14; 0.05 at 3, where the tree breaks into patches);
+    # no post stage: the synthesis already matches the painting's colours after every pass, and the covariance
+    # map plus its fit undid the last proposals (patch SW 16-21% further on the bonsai, 20-30% on Luigi, the
+    # demo scene within 1%).
     "standard": StylizeConfig(
         stages=12,
         updates_per_stage=1,
         fit_steps=30,
-        post_steps=30,
+        post_steps=0,
         scene_weight=0.5,
+        stroke_size=2.0,
         max_views=16,
         optimize_geometry=False,
         early_stop=0.01,
@@ -247,8 +251,9 @@ PRESETS: dict[str, StylizeConfig] = {
         stages=6,
         updates_per_stage=1,
         fit_steps=15,
-        post_steps=15,
+        post_steps=0,
         scene_weight=0.5,
+        stroke_size=2.0,
         max_views=8,
         optimize_geometry=False,
         early_stop=0.01,
