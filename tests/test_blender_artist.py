@@ -150,8 +150,8 @@ def test_stroke_size_and_paint_scene_reach_the_run(addon, tmp_path):
     assert "content_weight" not in settings_rna
     config = addon.dresg_addon.method.config
     settings = bpy.context.scene.dresg
-    assert settings.stroke_size == config.StylizeConfig().stroke_size
-    assert settings.scene_weight == pytest.approx(config.PRESETS["standard"].scene_weight)
+    assert settings.stroke_size == config.PRESETS[config.DEFAULT_PRESET].stroke_size
+    assert settings.scene_weight == pytest.approx(config.PRESETS[config.DEFAULT_PRESET].scene_weight)
     _import(tmp_path, _scene())
     from dresg_addon.util.imageio import write_image
 
