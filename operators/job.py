@@ -15,7 +15,7 @@ import time
 import bpy
 
 from ..dresg_addon.util.errors import DresgError
-from .splat_object import is_splat_object, write_colors, write_geometry
+from .splat_object import is_splat_object, object_mode, write_colors, write_geometry
 from .tasks import BackgroundTask, tag_redraw
 
 PRINT_INTERVAL = 2.0  # seconds between progress lines in background mode
@@ -166,7 +166,9 @@ class StylizeJob:
 
     def _apply(self, write) -> None:
         try:
-            write(self._object())
+            obj = self._object()
+            with object_mode(obj):  # the artist may be in Edit Mode: left for the write, entered again after
+                write(obj)
         except Exception as error:  # a failed write ends the run; the message reaches the panel
             self.error = str(error) if isinstance(error, DresgError) else f"{type(error).__name__}: {error}"
             self._cancel.set()

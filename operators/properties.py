@@ -237,10 +237,14 @@ classes = (DRESG_PG_view, DRESG_PG_settings)
 
 
 def _strength_changed(obj, _context) -> None:
+    from ..dresg_addon.util.errors import DresgError
     from .splat_object import apply_strength, is_splat_object
 
     if is_splat_object(obj):
-        apply_strength(obj)
+        try:
+            apply_strength(obj)  # in Edit Mode too (splat_object.object_mode)
+        except DresgError as error:  # an update callback has no report: one line on the console
+            print(f"Strength: {error}")
 
 
 def attach() -> None:

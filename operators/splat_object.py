@@ -14,8 +14,11 @@ node trees. Object custom properties:
 ``dresg_strength``          (an RNA property) how far the shown and exported colours go from the
                             originals (0) to the stylized ones (1)
 ==========================  ===========================================================
+
+Every read or write of the mesh goes through :func:`object_mode`, so it works with the object in Edit Mode.
 """
 
+import contextlib
 import functools
 
 import bmesh
@@ -25,7 +28,7 @@ from mathutils import Matrix
 
 from ..dresg_addon.scene import splat_mesh as sm
 from ..dresg_addon.scene.gaussians import GaussianScene, blend_coefficients
-from ..dresg_addon.util.errors import SceneFormatError
+from ..dresg_addon.util.errors import DresgError, SceneFormatError
 
 NODE_GROUP = "DReSG Gaussian Splats"
 NODE_GROUP_VERSION = 4  # bump when the tree changes; older trees are rebuilt in place
@@ -50,6 +53,61 @@ INPUT_CORE_ALPHA = "Core Alpha"  # 0: Solid shapes at Scale Factor sigmas; set f
 
 def is_splat_object(obj) -> bool:
     return obj is not None and obj.type == "MESH" and sm.SH_DC in obj.data.attributes and "dresg_source_path" in obj
+
+
+@contextlib.contextmanager
+def object_mode(obj):
+    """Object Mode for the time of a read or write of ``obj``'s mesh; nothing to do outside Edit Mode.
+
+    In Edit Mode the mesh lives in Blender's edit mesh: the mesh's attributes read as empty (``foreach_get``:
+    "sequence length mismatch ... needed 0") and what is written to them is lost when Edit Mode ends. This leaves
+    Edit Mode, which writes the edit mesh (selection and hidden splats included) into the mesh, and enters it
+    again afterwards, which loads the values written and the same selection: it works for every attribute type
+    (``bmesh`` has no quaternion layers) with ``foreach_get`` / ``foreach_set`` speed. Uses inside a use do
+    nothing, so an operator can hold Object Mode over several reads and writes. The preview modifier is off
+    during the switches, which would each evaluate it (seconds for 500k splats): it is evaluated once, when
+    drawn, as after a write in Object Mode.
+    """
+    if obj.mode != "EDIT":
+        yield
+        return
+    modifier = splat_modifier(obj)
+    shown = modifier is not None and modifier.show_viewport
+    if shown:
+        modifier.show_viewport = False
+    try:
+        _set_mode(obj, "OBJECT")
+        try:
+            yield
+        finally:
+            _set_mode(obj, "EDIT")
+    finally:
+        if shown:
+            modifier.show_viewport = True
+
+
+def _set_mode(obj, mode: str) -> None:
+    try:
+        with bpy.context.temp_override(active_object=obj, object=obj):
+            bpy.ops.object.mode_set("EXEC_DEFAULT", False, mode=mode)  # False: no undo step of its own
+    except RuntimeError as error:  # e.g. the object is not in the view layer shown
+        action = "leave" if mode == "OBJECT" else "enter"
+        raise DresgError(
+            f"'{obj.name}': Blender would not {action} Edit Mode here ({str(error).strip()}); press Tab and try again"
+        ) from None
+    if obj.mode != mode:
+        raise DresgError(f"'{obj.name}': Blender would not switch to {mode.title()} Mode; press Tab and try again")
+
+
+def in_object_mode(function):
+    """Run ``function(obj, ...)`` under :func:`object_mode`."""
+
+    @functools.wraps(function)
+    def wrapper(obj, *args, **kwargs):
+        with object_mode(obj):
+            return function(obj, *args, **kwargs)
+
+    return wrapper
 
 
 def write_attributes(mesh, attributes: list[sm.PointAttribute]) -> None:
@@ -139,6 +197,7 @@ def create_splat_object(
     return obj
 
 
+@in_object_mode
 def scene_from_object(obj) -> GaussianScene:
     """The scene an imported (and possibly stylized) splat object holds, in the file's frame."""
     mesh = obj.data
@@ -150,6 +209,7 @@ def scene_from_object(obj) -> GaussianScene:
     )
 
 
+@in_object_mode
 def selection_mask(obj, mode: str, group: str = "") -> np.ndarray | None:
     """[N] bool of the splats a run should change: None for ALL; the Edit Mode selection (SELECTED); a vertex
     group's members or a boolean point attribute (GROUP). SceneFormatError names what is missing or empty."""
@@ -158,8 +218,6 @@ def selection_mask(obj, mode: str, group: str = "") -> np.ndarray | None:
     mesh = obj.data
     n = len(mesh.vertices)
     if mode == "SELECTED":
-        if obj.mode == "EDIT":
-            obj.update_from_editmode()  # Edit Mode keeps its selection in the edit mesh until synced
         mask = np.zeros(n, bool)
         mesh.vertices.foreach_get("select", mask)
         what = "no splat is selected (select some in Edit Mode)"
@@ -182,6 +240,7 @@ def selection_mask(obj, mode: str, group: str = "") -> np.ndarray | None:
     return mask
 
 
+@in_object_mode
 def stylized_scene(obj) -> GaussianScene:
     """The scene with the last runs' colours at full strength: what a further run starts from, so splats it does
     not select keep what earlier runs (with other paintings) gave them."""
@@ -208,6 +267,7 @@ def _check_count(obj, n: int) -> None:
         )
 
 
+@in_object_mode
 def write_colors(obj, sh_dc: np.ndarray) -> None:  # sh_dc: [N, 3]
     """Write stylized DC colours: kept as they are, and shown (and exported) at the object's strength."""
     mesh = obj.data
@@ -216,6 +276,7 @@ def write_colors(obj, sh_dc: np.ndarray) -> None:  # sh_dc: [N, 3]
     apply_strength(obj)
 
 
+@in_object_mode
 def apply_strength(obj) -> None:
     """Show the colours ``dresg_strength`` of the way from the originals to the stylized ones (nothing to do
     before a stylization)."""
@@ -228,6 +289,7 @@ def apply_strength(obj) -> None:
     mesh.update()
 
 
+@in_object_mode
 def write_geometry(obj, means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray) -> None:
     """Write optimised geometry (means [N, 3], log-scales [N, 3], quaternions [N, 4]); the imported
     geometry is kept in ``*_original`` attributes the first time, so it can be restored."""
@@ -247,6 +309,7 @@ def write_geometry(obj, means: np.ndarray, log_scales: np.ndarray, quats: np.nda
     mesh.update()
 
 
+@in_object_mode
 def restore_original(obj, mask: np.ndarray | None = None) -> None:
     """Bring back the imported colours (and geometry, when the optimizer moved it); lossless. With ``mask``
     only those splats' colours: the rest keep their stylized ones."""

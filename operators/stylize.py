@@ -8,7 +8,7 @@ import numpy as np
 from ..dresg_addon.scene import splat_mesh
 from ..dresg_addon.util.errors import DresgError, ImageError
 from . import ADDON_PACKAGE, job
-from .splat_object import is_splat_object, restore_original, selection_mask, stylized_scene
+from .splat_object import is_splat_object, object_mode, restore_original, selection_mask, stylized_scene
 from .tasks import tag_redraw
 from .views import active_cameras, fitting_cameras, scene_cameras
 
@@ -30,7 +30,7 @@ def style_image(settings) -> tuple[np.ndarray, str]:
         width, height = image.size
         channels = image.channels
         if width * height == 0 or channels == 0:
-            raise ImageError(f"style image '{image.name}' has no pixels (is its file missing?)")
+            return _unloaded_style_image(image), image.name
         pixels = np.empty(width * height * channels, dtype=np.float32)
         image.pixels.foreach_get(pixels)
         if image.is_float:  # float buffers are scene-linear; the method works on display values
@@ -42,6 +42,22 @@ def style_image(settings) -> tuple[np.ndarray, str]:
         raise ImageError("no style image chosen")
     path = bpy.path.abspath(settings.style_path)
     return read_rgb(path, max_side=STYLE_MAX_SIDE), os.path.basename(path)
+
+
+def _unloaded_style_image(image) -> np.ndarray:
+    """The pixels of a Blender image that has none loaded, read from its file by the engine's reader; or an
+    ImageError saying why not: the file missing, or the reader's reason (as the command line says it)."""
+    from ..dresg_addon.util.imageio import STYLE_MAX_SIDE, read_rgb
+
+    if image.packed_file is not None or image.source != "FILE" or not image.filepath:
+        raise ImageError(f"style image '{image.name}' has no pixels: Blender could not load it")
+    path = bpy.path.abspath(image.filepath, library=image.library)
+    if not os.path.exists(path):
+        raise ImageError(f"style image '{image.name}': its file {path} is missing")
+    try:  # Blender could not decode it: the reader's reason tells why (or it reads after all)
+        return read_rgb(path, max_side=STYLE_MAX_SIDE)
+    except ImageError as error:
+        raise ImageError(f"style image '{image.name}': the file could not be read: {error}") from None
 
 
 def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[job.StylizeJob, str]:
@@ -62,8 +78,9 @@ def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[
         dino_path=bpy.path.abspath(dino_path) if dino_path else "",
     )
     style, style_name = style_image(settings)
-    mask = selection_mask(obj, settings.selection, settings.selection_group)
-    splats = stylized_scene(obj)  # earlier runs' colours stay on the splats this one does not select
+    with object_mode(obj):  # one exit from Edit Mode (and back) for both reads
+        mask = selection_mask(obj, settings.selection, settings.selection_group)
+        splats = stylized_scene(obj)  # earlier runs' colours stay on the splats this one does not select
     ticked = active_cameras(scene)
     camera_objects = ticked or scene_cameras(scene)
     views = list(range(len(ticked))) if ticked else None
@@ -226,15 +243,18 @@ class DRESG_OT_restore_colors(bpy.types.Operator):
         obj = context.active_object
         if job.running_on(obj):  # the run must not write over the restored colours
             job.current().cancel()
+        settings = context.scene.dresg
         try:
-            settings = context.scene.dresg
-            mask = selection_mask(obj, settings.selection, settings.selection_group) if self.selection_only else None
+            with object_mode(obj):  # one exit from Edit Mode (and back) for the selection and the write
+                mask = None
+                if self.selection_only:
+                    mask = selection_mask(obj, settings.selection, settings.selection_group)
+                restore_original(obj, mask)
+                count = len(obj.data.vertices) if mask is None else int(mask.sum())
         except DresgError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        restore_original(obj, mask)
         tag_redraw()
-        count = len(obj.data.vertices) if mask is None else int(mask.sum())
         self.report({"INFO"}, f"Restored the original colours of {count} splats")
         return {"FINISHED"}
 

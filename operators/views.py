@@ -13,7 +13,7 @@ from mathutils import Matrix
 
 from ..dresg_addon.scene import blender_camera
 from ..dresg_addon.util.errors import DresgError
-from .splat_object import is_splat_object, scene_from_object, selection_mask
+from .splat_object import is_splat_object, object_mode, scene_from_object, selection_mask
 from .tasks import BackgroundTask, tag_redraw
 
 ORBIT_COLLECTION = "DReSG Orbit Cameras"
@@ -216,8 +216,10 @@ class DRESG_OT_select_views(bpy.types.Operator):
         objects = scene_cameras(scene)
         cameras = fitting_cameras(scene, obj, objects)
         settings = scene.dresg
-        mask = selection_mask(obj, settings.selection, settings.selection_group)
-        return SelectionJob(scene_from_object(obj), cameras, settings.config(), [o.name for o in objects], mask)
+        with object_mode(obj):  # one exit from Edit Mode (and back) for both reads
+            mask = selection_mask(obj, settings.selection, settings.selection_group)
+            splats = scene_from_object(obj)
+        return SelectionJob(splats, cameras, settings.config(), [o.name for o in objects], mask)
 
     def execute(self, context):
         try:
