@@ -22,12 +22,13 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
     axis_conversion: bpy.props.EnumProperty(
         name="Axes",
         description="Which way is up in the file; choose another if the scene stands on its head or side "
-        "(it only sets the object's rotation)",
+        "(it only sets the object's rotation: the Up Axis in the object panel changes it later)",
         items=(
             (
                 "AUTO",
                 "Automatic",
-                "From the capture's cameras beside the file (cameras.json, COLMAP, LLFF), else OpenCV",
+                "From the capture's cameras beside the file (cameras.json, COLMAP, LLFF), else from the splats "
+                "(a floor, table or base, and the wider end at the bottom) when they are clear, else OpenCV",
             ),
             (
                 "OPENCV_TO_BLENDER",
@@ -85,24 +86,26 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
     )
 
     def execute(self, context):
-        from ..dresg_addon.scene.camera_io import detect_axes
+        from ..dresg_addon.scene.camera_io import detect_up_axis
         from ..dresg_addon.scene.io import InvalidSplatsWarning, read_scene_detailed
+        from ..dresg_addon.scene.splat_mesh import AXIS_CONVERSION_UP
 
         start = time.perf_counter()
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", InvalidSplatsWarning)
                 result = read_scene_detailed(self.filepath, drop_invalid=self.drop_invalid)
-            axes, axes_reason = self.axis_conversion, ""
-            if axes == "AUTO":
-                axes, axes_reason = detect_axes(self.filepath)
+            if self.axis_conversion == "AUTO":
+                up_axis, axes_reason = detect_up_axis(self.filepath, result.scene)
+            else:
+                up_axis, axes_reason = AXIS_CONVERSION_UP[self.axis_conversion], ""
             obj = create_splat_object(
                 context,
                 result.scene,
                 bpy.path.display_name_from_filepath(self.filepath),
                 source_path=self.filepath,
                 source_format=result.format.value,
-                axis_conversion=axes,
+                up_axis=up_axis,
                 shape=self.shape,
                 scale_factor=self.scale_factor,
                 min_opacity=self.min_opacity,
@@ -123,7 +126,7 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
         seconds = time.perf_counter() - start
         message = f"Imported {len(result.scene)} splats ({result.format.value}) as '{obj.name}' in {seconds:.2f} s"
         if axes_reason:
-            message += f"; axes: {axes_reason}"
+            message += f"; Axes: Automatic: {axes_reason}"
         if result.dropped:
             self.report({"WARNING"}, f"{message}; dropped {result.dropped} invalid splats")
         else:

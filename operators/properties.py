@@ -16,6 +16,7 @@ from ..dresg_addon.method.config import (
     preset_description,
     preset_label,
 )
+from ..dresg_addon.scene.splat_mesh import UP_AXES
 
 # Panel field -> StylizeConfig field, copied by a preset and read back by config().
 CONFIG_FIELDS = (
@@ -247,6 +248,16 @@ def _strength_changed(obj, _context) -> None:
             print(f"Strength: {error}")
 
 
+def _up_axis_changed(obj, _context) -> None:
+    from .splat_object import is_splat_object, set_up_axis
+
+    if is_splat_object(obj):
+        set_up_axis(obj)
+
+
+UP_AXIS_NOTES = {"-Y": " (OpenCV / COLMAP: most captures)", "+Y": " (OpenGL, glTF, many models)", "+Z": " (as Blender)"}
+
+
 def attach() -> None:
     bpy.types.Scene.dresg = PointerProperty(type=DRESG_PG_settings)
     bpy.types.Object.dresg_view = PointerProperty(type=DRESG_PG_view)
@@ -260,9 +271,22 @@ def attach() -> None:
         subtype="FACTOR",
         update=_strength_changed,
     )
+    bpy.types.Object.dresg_up_axis = EnumProperty(
+        name="Up Axis",
+        description="Which of the file's axes points up: turns the splats upright in place, no new import "
+        "(the object's location and scale stay)",
+        items=[(axis, axis, f"The file's {axis} axis points up{UP_AXIS_NOTES.get(axis, '')}") for axis in UP_AXES],
+        default="-Y",
+        update=_up_axis_changed,
+    )
+    bpy.types.Object.dresg_up_flip = BoolProperty(
+        name="Flip", description="Turn the splats upside down", default=False, update=_up_axis_changed
+    )
 
 
 def detach() -> None:
+    del bpy.types.Object.dresg_up_flip
+    del bpy.types.Object.dresg_up_axis
     del bpy.types.Object.dresg_strength
     del bpy.types.Object.dresg_view
     del bpy.types.Scene.dresg

@@ -7,12 +7,14 @@ node trees. Object custom properties:
 ==========================  ===========================================================
 ``dresg_source_path``       the file the splats were imported from
 ``dresg_source_format``     its format ("graphdeco PLY", "antimatter15 .splat", ...)
-``dresg_axis_conversion``   a key of ``splat_mesh.AXIS_CONVERSIONS``: the rotation applied as the object transform
+``dresg_axis_conversion``   the key of ``splat_mesh.AXIS_CONVERSIONS`` the object's rotation is ("" for other axes)
 ``dresg_extras``            ``{name: numpy dtype}`` of extra per-splat file properties
 ``dresg_sh_rest``           ``"zero"`` once a stylization dropped view-dependent colour, else ``"keep"``
 ``dresg_stylize_settings``  JSON of the last stylization's settings (absent when not stylized)
 ``dresg_strength``          (an RNA property) how far the shown and exported colours go from the
                             originals (0) to the stylized ones (1)
+``dresg_up_axis``           (an RNA property) which file axis points up, one of ``splat_mesh.UP_AXES``
+``dresg_up_flip``           (an RNA property) upside down; the two set the rotation (:func:`set_up_axis`)
 ==========================  ===========================================================
 
 Every read or write of the mesh goes through :func:`object_mode`, so it works with the object in Edit Mode.
@@ -153,7 +155,7 @@ def create_splat_object(
     *,
     source_path: str,
     source_format: str,
-    axis_conversion: str = "OPENCV_TO_BLENDER",
+    up_axis: str = "-Y",
     shape: str = "ICO",
     scale_factor: float = 1.5,
     min_opacity: float = 0.02,
@@ -172,12 +174,12 @@ def create_splat_object(
     mesh.update()
 
     obj = bpy.data.objects.new(name, mesh)
-    obj.matrix_world = Matrix(sm.AXIS_CONVERSIONS[axis_conversion].tolist()).to_4x4()
     obj["dresg_source_path"] = str(source_path)
     obj["dresg_source_format"] = source_format
-    obj["dresg_axis_conversion"] = axis_conversion
     obj["dresg_extras"] = sm.extra_dtypes(scene)
     obj["dresg_sh_rest"] = "keep"
+    obj.dresg_up_axis = up_axis  # shown in the panel; its update sets the rotation as set_up_axis does
+    set_up_axis(obj)
     mesh.materials.append(ensure_material("GEOMETRY"))
 
     modifier = obj.modifiers.new(MODIFIER, "NODES")
@@ -195,6 +197,15 @@ def create_splat_object(
     obj.select_set(True)
     context.view_layer.objects.active = obj
     return obj
+
+
+def set_up_axis(obj) -> None:
+    """Rotate ``obj`` so that its Up Axis (``dresg_up_axis``, upside down with ``dresg_up_flip``) points up in
+    Blender: the rotation is rebuilt from the file's axes, the location and scale stay."""
+    rotation = sm.up_axis_rotation(obj.dresg_up_axis, obj.dresg_up_flip)
+    location, _, scale = obj.matrix_basis.decompose()
+    obj.matrix_basis = Matrix.LocRotScale(location, Matrix(rotation.tolist()), scale)
+    obj["dresg_axis_conversion"] = sm.axis_conversion_of(obj.dresg_up_axis, obj.dresg_up_flip)
 
 
 @in_object_mode

@@ -22,7 +22,7 @@ from dresg_addon.scene.blender_camera import (
 )
 from dresg_addon.scene.camera import Camera, look_at
 from dresg_addon.scene.camera_io import (
-    detect_axes,
+    detect_up_axis,
     find_capture_cameras,
     load_cameras,
     mean_camera_up,
@@ -737,7 +737,7 @@ def test_clip_distances_cover_the_box_at_any_scale():
 
 
 def test_up_axis_comes_from_the_capture_cameras(tmp_path):
-    from dresg_addon.scene.splat_mesh import axis_conversion_for_up
+    from dresg_addon.scene.splat_mesh import axis_conversion_for_up, up_axis_for
 
     scene = GaussianScene(
         means=np.random.default_rng(0).normal(size=(50, 3)).astype(np.float32),
@@ -751,24 +751,29 @@ def test_up_axis_comes_from_the_capture_cameras(tmp_path):
     ply.parent.mkdir(parents=True)
     ply.write_bytes(b"")
     assert find_capture_cameras(ply) is None
-    assert detect_axes(ply)[0] == "OPENCV_TO_BLENDER" and "no cameras found" in detect_axes(ply)[1]
+    assert detect_up_axis(ply)[0] == "-Y" and "no cameras found" in detect_up_axis(ply)[1]
 
     y_up = orbit_cameras(scene, 4, up=(0.0, 1.0, 0.0))
     write_cameras_json(tmp_path / "model" / "cameras.json", y_up)
     assert find_capture_cameras(ply) == tmp_path / "model" / "cameras.json"
     np.testing.assert_allclose(mean_camera_up(y_up), [0.0, 1.0, 0.0], atol=1e-9)
-    key, reason = detect_axes(ply)
-    assert key == "Y_UP_TO_BLENDER" and "cameras.json" in reason
+    up, reason = detect_up_axis(ply, scene)  # the cameras win over the splats
+    assert up == "+Y" and "cameras.json" in reason
     write_cameras_json(tmp_path / "model" / "cameras.json", orbit_cameras(scene, 4))  # OpenCV: y down
-    assert detect_axes(ply)[0] == "OPENCV_TO_BLENDER"
+    assert detect_up_axis(ply)[0] == "-Y"
     write_cameras_json(tmp_path / "model" / "cameras.json", orbit_cameras(scene, 4, up=(0.0, 0.0, 1.0)))
-    assert detect_axes(ply)[0] == "NONE"
+    assert detect_up_axis(ply)[0] == "+Z"
+    write_cameras_json(tmp_path / "model" / "cameras.json", orbit_cameras(scene, 4, up=(-1.0, 0.0, 0.0)))
+    assert detect_up_axis(ply)[0] == "-X"
     (tmp_path / "model" / "cameras.json").write_text("[]")  # unreadable: the usual frame, and why
-    key, reason = detect_axes(ply)
-    assert key == "OPENCV_TO_BLENDER" and "unreadable" in reason
+    up, reason = detect_up_axis(ply)
+    assert up == "-Y" and "unreadable" in reason
+    up, reason = detect_up_axis(ply, scene)  # a cloud of splats is no help either
+    assert up == "-Y" and "unreadable" in reason and "not sure from the splats" in reason
 
     # The bonsai's published viewing pose: up (0.02, -0.76, -0.65) in its COLMAP frame.
     assert axis_conversion_for_up([0.01933, -0.7583, -0.65161]) == "OPENCV_TO_BLENDER"
+    assert up_axis_for([0.01933, -0.7583, -0.65161]) == "-Y"
     flipped = [look_at([0.0, 0.0, -3.0], [0.0, 0.0, 0.0], up=(0.0, s, 0.0)) for s in (1.0, -1.0)]
     with pytest.raises(CameraError, match="cancel out"):
         mean_camera_up([Camera(8, 8, 8.0, 8.0, 4.0, 4.0, w2c) for w2c in flipped])

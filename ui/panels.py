@@ -4,7 +4,6 @@ import textwrap
 
 import bpy
 
-from ..dresg_addon.scene.splat_mesh import AXIS_LABELS
 from ..operators import dependencies, job
 from ..operators.splat_object import (
     INPUT_MAX_SPLATS,
@@ -79,8 +78,10 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
         mesh = obj.data
         box = layout.box()
         box.label(text=f"{obj.name}: {len(mesh.vertices):,} splats", icon="OUTLINER_OB_POINTCLOUD")
-        axes = AXIS_LABELS.get(obj.get("dresg_axis_conversion"), "?")
-        box.label(text=f"{obj.get('dresg_source_format', '?')}, axes: {axes}")
+        box.label(text=obj.get("dresg_source_format", "?"))
+        row = box.row(align=True)
+        row.prop(obj, "dresg_up_axis")
+        row.prop(obj, "dresg_up_flip", toggle=True)
         if "dresg_stylize_settings" in obj:
             box.label(text="Stylized", icon="BRUSH_DATA")
 

@@ -30,7 +30,9 @@ import numpy as np
 from ..util.errors import CameraError, ConfigError, DresgError, with_path
 from ..util.fileutil import atomic_write_bytes, irregular_file_problem
 from .camera import Camera
-from .splat_mesh import AXIS_LABELS, axis_conversion_for_up
+from .gaussians import GaussianScene
+from .splat_mesh import UP_AXIS_LABELS, up_axis_for
+from .up_axis import up_axis_from_splats
 
 MAX_IMAGE_SIDE = 16384  # pixels; a camera wider or taller than this is refused on read (a 16k render is ~3 GB)
 ROTATION_TOLERANCE = 1e-3  # max |R^T R - I| accepted from files (rounded decimals), then projected
@@ -607,21 +609,32 @@ def mean_camera_up(cameras: list[Camera]) -> np.ndarray:  # [3] unit vector, wor
     return up / norm
 
 
-def detect_axes(scene_path: str | os.PathLike) -> tuple[str, str]:
-    """Which way is up in a scene file: a key of ``splat_mesh.AXIS_CONVERSIONS`` and why, in words.
+USUAL_UP_AXIS = "-Y"  # OpenCV / COLMAP: what 3DGS training from COLMAP produces
 
-    From the capture's cameras near the file (:func:`find_capture_cameras`) when there are any: the
-    conversion that turns their average up closest to Blender's +Z. Otherwise OpenCV / COLMAP (y down),
-    what 3DGS training from COLMAP produces; the splats alone do not say which way is up.
+
+def detect_up_axis(scene_path: str | os.PathLike, scene: GaussianScene | None = None) -> tuple[str, str]:
+    """Which file axis points up (one of ``splat_mesh.UP_AXES``) and why, in words: the import's Automatic axes.
+
+    From the capture's cameras near the file (:func:`find_capture_cameras`) when there are any: their average
+    up, snapped to an axis. Otherwise from the splats of ``scene`` (:func:`.up_axis.up_axis_from_splats`) when
+    they are sure; otherwise -Y (OpenCV / COLMAP), the usual for 3DGS captures, saying so.
     """
     found = find_capture_cameras(scene_path)
+    note = ""
     if found is not None:
         try:
-            key = axis_conversion_for_up(mean_camera_up(load_cameras(found)))
-            return key, f"{AXIS_LABELS[key]}, from the cameras in {found.name}"
+            up = up_axis_for(mean_camera_up(load_cameras(found)))
+            return up, f"{UP_AXIS_LABELS[up]}, from the cameras in {found.name}"
         except DresgError as error:
-            return "OPENCV_TO_BLENDER", f"{AXIS_LABELS['OPENCV_TO_BLENDER']}, the usual (cameras unreadable: {error})"
+            note = f"cameras unreadable: {error}"
+    usual = f"{UP_AXIS_LABELS[USUAL_UP_AXIS]}, the usual for 3DGS captures"
+    if scene is None:
+        return USUAL_UP_AXIS, f"{usual} ({note or 'no cameras found beside the file'})"
+    guess = up_axis_from_splats(scene)
+    note = f"{note}; " if note else ""
+    if guess.sure:
+        return guess.axis, f"{UP_AXIS_LABELS[guess.axis]} from the splats ({note}{guess.evidence()}; confident)"
     return (
-        "OPENCV_TO_BLENDER",
-        f"{AXIS_LABELS['OPENCV_TO_BLENDER']}, the usual for 3DGS captures (no cameras found beside the file)",
+        USUAL_UP_AXIS,
+        f"{usual}: not sure from the splats ({note}{guess.evidence()}); check the Up Axis in the object panel",
     )

@@ -275,21 +275,65 @@ LOW_PASS = 0.3
 SOFT_RADIUS = GAUSSIAN_CUTOFF_SIGMAS / ICO_INRADIUS  # sigmas from a splat's centre to its instance's vertices
 MAX_ALPHA = 0.99  # the rasterizer's cap on one splat's alpha
 
-# Axis conversions applied as the OBJECT transform (rotation matrices, file frame -> Blender world).
-AXIS_CONVERSIONS: dict[str, np.ndarray] = {
-    # OpenCV / COLMAP (x right, y down, z forward) -> Blender (z up, front view looking along +y):
-    # x -> x, z -> y, -y -> z, i.e. a rotation of -90 degrees about X.
-    "OPENCV_TO_BLENDER": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
-    # y up, z towards the viewer (OpenGL, glTF, three.js; luigi.ply): x -> x, -z -> y, y -> z, +90 degrees about X.
-    "Y_UP_TO_BLENDER": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
-    "NONE": np.eye(3),  # z up, as Blender
+# Which file axis points up in Blender: the splat object's Up Axis, and what the import's Axes choose.
+UP_AXES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+UP_AXIS_LABELS = {
+    "+X": "+X up",
+    "-X": "-X up",
+    "+Y": "+Y up (OpenGL, glTF)",
+    "-Y": "-Y up (OpenCV / COLMAP)",
+    "+Z": "+Z up (as Blender)",
+    "-Z": "-Z up",
 }
+
+
+def up_axis_vector(up_axis: str) -> np.ndarray:  # [3]
+    """The file-frame unit vector of one of :data:`UP_AXES` ("-Y": (0, -1, 0))."""
+    if up_axis not in UP_AXES:
+        raise ValueError(f"up axis {up_axis!r} is not one of {', '.join(UP_AXES)}")
+    vector = np.zeros(3)
+    vector["XYZ".index(up_axis[1])] = 1.0 if up_axis[0] == "+" else -1.0
+    return vector
+
+
+def up_axis_rotation(up_axis: str, flip: bool = False) -> np.ndarray:  # [3, 3]
+    """The object rotation (file frame -> Blender world) that points the file's ``up_axis`` along Blender's +Z.
+
+    Its rows are Blender's axes in file coordinates: Z is the up axis (negated with ``flip``: upside down, the
+    same as the opposite axis), X the first other file axis (x, else y) and Y = Z x X. So -Y up is OpenCV /
+    COLMAP (x -> x, z -> y, -y -> z: -90 degrees about X), +Y up is OpenGL / glTF (+90 degrees about X) and +Z
+    up the identity; :data:`AXIS_CONVERSIONS` are these.
+    """
+    up = up_axis_vector(up_axis) * (-1.0 if flip else 1.0)
+    x_axis = np.eye(3)[1 if up_axis[1] == "X" else 0]
+    return np.stack([x_axis, np.cross(up, x_axis), up]) + 0.0  # + 0.0: no -0.0 entries
+
+
+def up_axis_for(direction) -> str:
+    """The one of :data:`UP_AXES` nearest a file-frame ``direction`` ([3], e.g. the cameras' mean up)."""
+    direction = np.asarray(direction, dtype=np.float64)
+    index = int(np.argmax(np.abs(direction)))
+    return ("+" if direction[index] >= 0.0 else "-") + "XYZ"[index]
+
+
+# The import's named Axes (rotations applied as the OBJECT transform, file frame -> Blender world):
+# OpenCV / COLMAP (x right, y down, z forward) -> Blender (z up, front view looking along +y); y up with z
+# towards the viewer (OpenGL, glTF, three.js; luigi.ply); z up, as Blender.
+AXIS_CONVERSION_UP = {"OPENCV_TO_BLENDER": "-Y", "Y_UP_TO_BLENDER": "+Y", "NONE": "+Z"}
+AXIS_CONVERSIONS: dict[str, np.ndarray] = {key: up_axis_rotation(up) for key, up in AXIS_CONVERSION_UP.items()}
 
 
 def axis_conversion_for_up(up) -> str:
     """The key of :data:`AXIS_CONVERSIONS` that turns the file's ``up`` direction ([3]) closest to Blender's +Z."""
     up = np.asarray(up, dtype=np.float64)
     return max(AXIS_CONVERSIONS, key=lambda key: float((AXIS_CONVERSIONS[key] @ up)[2]))
+
+
+def axis_conversion_of(up_axis: str, flip: bool = False) -> str:
+    """The key of :data:`AXIS_CONVERSIONS` that is this Up Axis (and flip), or "" when none is."""
+    if flip:
+        up_axis = ("-" if up_axis[0] == "+" else "+") + up_axis[1]
+    return next((key for key, up in AXIS_CONVERSION_UP.items() if up == up_axis), "")
 
 
 AXIS_LABELS = {"OPENCV_TO_BLENDER": "OpenCV / COLMAP (y down)", "Y_UP_TO_BLENDER": "Y up", "NONE": "Z up (as Blender)"}
