@@ -61,7 +61,7 @@ class UpAxisGuess:
         bottom = ("-" if self.axis[0] == "+" else "+") + self.axis[1]
         return (
             f"densest layer across {self.axis[1]}, {self.plane_ratio:.1f}x the other axes'; "
-            f"{self.footprint_ratio:.1f}x wider at {bottom}, the bottom"
+            f"{self.footprint_ratio:.1f}x wider at {bottom}" + (", the bottom" if self.sure else "")
         )
 
 
