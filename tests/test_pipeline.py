@@ -244,17 +244,18 @@ def test_progress_reports_every_phase_with_finite_etas_after_the_first_stage(bas
     assert_same_scene(result.scene, baseline.scene)  # callbacks do not change the run
     phases = [p.phase for p in reports]
     assert phases[0] == "select" and phases[-1] == "done"
-    assert set(phases) == {"select", "setup", "proposal", "fit", "post", "done"}
+    assert set(phases) == {"select", "setup", "proposal", "fit", "feedback", "post", "done"}
     assert all(p.stages == TINY.stages for p in reports)
     for stage in (1, 2):
         fits = [p.step for p in reports if p.phase == "fit" and p.stage == stage]
-        # One report per round of the colour solve, then its end.
-        assert fits[:-1] == list(range(1, len(fits))) and fits[-1] == TINY.solve_rounds
+        # The solve's start, one report per round, then its end.
+        assert fits[:-1] == list(range(len(fits) - 1)) and fits[-1] == TINY.solve_rounds
         proposals = [p.step for p in reports if p.phase == "proposal" and p.stage == stage]
         assert proposals == [0, 1, 2]  # one per active view
-        assert all(math.isfinite(p.loss) for p in reports if p.phase == "fit" and p.stage == stage)
+        assert all(math.isfinite(p.loss) for p in reports if p.phase == "fit" and p.stage == stage and p.step)
     post_steps = [p.step for p in reports if p.phase == "post"]
-    assert post_steps[:-1] == list(range(1, len(post_steps))) and post_steps[-1] == TINY.solve_rounds
+    assert post_steps[:2] == [0, 0]  # the colour transfer, the solve's start
+    assert post_steps[2:-1] == list(range(1, len(post_steps) - 2)) and post_steps[-1] == TINY.solve_rounds
     assert all(p.stage == TINY.stages + 1 for p in reports if p.phase == "post")
     later = [p for p in reports if p.stage >= 2 and p.phase != "done"]
     assert later and all(math.isfinite(p.eta_seconds) and p.eta_seconds >= 0 for p in later)
@@ -590,7 +591,7 @@ def test_the_post_stage_fit_ends_near_the_optimum_of_its_colour_map():
     """The post stage's targets are one affine colour map of the renders: its solve starts from the splats' colours
     under that map and is anchored there, so the anchor does not hold the fit back from the optimum."""
     post = run(config=TINY.with_(stages=1, post_steps=2, log_optimum=True)).log[-1]
-    assert post["stage"] == "post" and post["gap_closed"] > 0.5
+    assert post["stage"] == "post" and post["gap_closed"] > 0.2  # the optimum itself closes 0.40 of this gap
     assert post["fit_residual"] <= 1.2 * post["optimum_residual"] + 1e-4
 
 

@@ -247,7 +247,7 @@ def test_report_command_writes_four_sections_and_plots(tmp_path):
     assert "| SSIM | GS | texture kept | shapes | short RMSE |" in text
     data = json.loads((out / "report.json").read_text())
     assert [r["label"] for r in data["runs"]] == ["preview", "paper", "stages 1", "stages 2"]
-    assert data["convergence"]["label"] == "preview" and data["convergence"]["steps"]  # most steps, first
+    assert data["convergence"]["label"] == "paper" and data["convergence"]["steps"]  # most fit steps (preview: no post)
     redrawn = tmp_path / "redrawn"
     redrawn.mkdir()
     draw_plots(data, redrawn)
