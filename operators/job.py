@@ -14,22 +14,12 @@ import time
 
 import bpy
 
+from ..dresg_addon.method.bookkeeping import ProgressLines, format_seconds
 from ..dresg_addon.util.errors import DresgError
 from .splat_object import is_splat_object, object_mode, write_colors, write_geometry
 from .tasks import BackgroundTask, tag_redraw
 
 PRINT_INTERVAL = 2.0  # seconds between progress lines in background mode
-
-
-def format_seconds(seconds: float | None) -> str:
-    if seconds is None or not math.isfinite(seconds) or seconds < 0:
-        return "?"
-    seconds = int(round(seconds))
-    if seconds < 60:
-        return f"{seconds}s"
-    if seconds < 3600:
-        return f"{seconds // 60}m {seconds % 60:02d}s"
-    return f"{seconds // 3600}h {seconds % 3600 // 60:02d}m"
 
 
 class StylizeJob:
@@ -39,13 +29,15 @@ class StylizeJob:
         self.object_name = obj.name
         self.object_uid = obj.session_uid
         self.n_splats = len(scene)
+        self.n_selected = len(scene) if mask is None else int(mask.sum())  # the splats the run was asked to stylize
+        self.n_stylized: int | None = None  # the splats it fitted (the selected ones an active view sees), once done
         self.config = config
         self.style_name = style_name
         self.state = "RUNNING"  # RUNNING, DONE, CANCELLED, ERROR
         self.fraction = 0.0
         self.text = "Starting..."
-        self.loss: float | None = None
-        self.eta: float | None = None
+        self.loss: float | None = None  # the fit's RMSE over covered pixels
+        self.eta: float | None = None  # seconds left; None while the run cannot estimate them yet
         self.error = ""
         self.stages_applied = 0
         self.images: dict = {}  # view name -> {"render"|"proposal"|"target"|"residual": [H, W, 3]}
@@ -56,8 +48,7 @@ class StylizeJob:
         self._task = BackgroundTask("dresg-stylize", self._work)
         self._cancel = self._task.cancel_event
         self._started = time.monotonic()
-        self._last_print = 0.0
-        self._last_key = None
+        self._lines = ProgressLines(PRINT_INTERVAL)
 
     # -- life cycle ----------------------------------------------------------------------------
 
@@ -182,26 +173,28 @@ class StylizeJob:
         self.stages_applied += 1
 
     def _on_progress(self, progress) -> None:
-        # Stage 0 is the set-up (view selection), stages + 1 the post colour stage: one unit each.
-        stages, steps = max(progress.stages, 1), max(progress.steps, 1)
-        done = min(max(progress.stage - 1, 0), stages) + min(max(progress.step, 0), steps) / steps
-        self.fraction = min(done / (stages + 1), 1.0) if progress.stage >= 1 else 0.0
-        self.loss, self.eta = progress.loss, progress.eta_seconds
-        if progress.stage < 1:
-            parts = [progress.message or progress.phase]
-        else:
-            stage = "Post stage" if progress.stage > progress.stages else f"Stage {progress.stage}/{progress.stages}"
-            parts = [stage, f"{progress.phase} {progress.step}/{progress.steps}"]
-            if progress.loss is not None and math.isfinite(progress.loss):
-                parts.append(f"loss {progress.loss:.4f}")
-            parts.append(f"{format_seconds(progress.eta_seconds)} left")
-        self.text = "Cancelling..." if self.cancel_requested else " | ".join(parts)
-        if bpy.app.background:
-            key = (progress.stage, progress.phase)
-            now = time.monotonic()
-            if key != self._last_key or now - self._last_print >= PRINT_INTERVAL:
-                print(f"[stylize] {self.text}", flush=True)
-                self._last_key, self._last_print = key, now
+        # The engine's fraction and text (bookkeeping.Progress): forward only, set-up included, the time left
+        # from the phases' measured times ("estimating" until the first stage has ended).
+        self.fraction = max(self.fraction, progress.fraction)
+        self.loss = progress.loss if math.isfinite(progress.loss) else self.loss
+        self.eta = progress.eta_seconds if math.isfinite(progress.eta_seconds) else None
+        self.text = "Cancelling..." if self.cancel_requested else progress.text()
+        line = self._lines.line(progress)
+        if bpy.app.background and line is not None and not self.cancel_requested:
+            print(f"[stylize] {line}", flush=True)
+
+    def summary(self) -> str:
+        """What the run did, for the operator's report: the splats it stylized (of the selection) and its time."""
+        took = format_seconds(self.seconds)
+        stylized = self.n_selected if self.n_stylized is None else self.n_stylized
+        what = "selected splats" if self.mask is not None else "splats"
+        if stylized >= self.n_selected:
+            return f"Stylized {stylized:,} {what} in {took}"
+        unseen = self.n_selected - stylized
+        return (
+            f"Stylized {stylized:,} of the {self.n_selected:,} {what} in {took} "
+            f"({unseen:,} that no active view sees kept their colours)"
+        )
 
     def _finish(self, kind: str, payload) -> None:
         self.seconds = time.monotonic() - self._started
@@ -222,6 +215,7 @@ class StylizeJob:
 
     def _apply_result(self, obj, result) -> None:
         scene = result.scene
+        self.n_stylized = result.stylized
         write_colors(obj, scene.sh_dc)
         if self.config.optimize_geometry:
             write_geometry(obj, scene.means, scene.log_scales, scene.quats)

@@ -199,7 +199,7 @@ class DRESG_OT_stylize(bpy.types.Operator):
         if run.state == "CANCELLED":
             self.report({"WARNING"}, f"{run.text}; Restore Original Colours brings back the imported ones")
             return {"FINISHED"}  # the applied stages stay, as one undo step
-        self.report({"INFO"}, f"Stylized {run.n_splats} splats in {job.format_seconds(run.seconds)}")
+        self.report({"INFO"}, run.summary())
         return {"FINISHED"}
 
 

@@ -119,12 +119,14 @@ def _splat_poll(cls, context) -> bool:
 
 class SelectionJob:
     """View selection as a :class:`~.tasks.BackgroundTask`: the splats and cameras are read on the main thread
-    first; the worker posts its progress, and :meth:`poll` (main thread) applies it."""
+    first; the worker posts its progress once per camera, and :meth:`poll` (main thread) applies it: the bar's
+    fraction, its text, and in background mode (the bpy module, ``blender -b``) one printed line per camera."""
 
     def __init__(self, splats, cameras, config, camera_names: list[str], mask=None) -> None:
         self.camera_names = camera_names
         self.mask = mask  # [N] bool: count only these splats (the Stylize selection)
-        self.fraction, self.text = 0.0, f"Rendering visibility 0/{len(cameras)}"
+        self.fraction, self.text = 0.0, f"Rendering coverage: 0/{len(cameras)} cameras"
+        self.reports: list[tuple[int, int]] = []  # (cameras done, cameras) as they arrived
         self.result = None
         self.error = ""
         self.cancelled = False
@@ -140,6 +142,10 @@ class SelectionJob:
     def start(self) -> None:
         self._task.start()
 
+    def run_blocking(self) -> None:
+        """Run on this (the main) thread, applying each camera's progress as it arrives (background mode)."""
+        self._task.run_blocking(self._apply)
+
     def join(self, timeout: float | None = None) -> None:
         """Wait for the worker, then apply what it posted (main thread)."""
         self._task.join(timeout)
@@ -147,11 +153,19 @@ class SelectionJob:
 
     def poll(self) -> bool:
         """Apply what the worker posted (main thread); True once the selection has ended."""
-        events = self._task.events()
+        self._apply(self._task.events())
+        return self.done
+
+    def _apply(self, events) -> None:
         for kind, payload in events:
             if kind == "progress":
                 done, total = payload
-                self.fraction, self.text = done / max(total, 1), f"Rendering visibility {done + 1}/{total}"
+                self.reports.append((done, total))
+                name = self.camera_names[done - 1] if 0 < done <= len(self.camera_names) else ""
+                self.fraction = done / max(total, 1)
+                self.text = f"Rendering coverage: {done}/{total} cameras" + (f" ({name})" if name else "")
+                if bpy.app.background:
+                    print(f"[select views] {self.text}", flush=True)
             elif kind == "done":
                 self.result = payload
             elif kind == "cancelled":
@@ -160,7 +174,6 @@ class SelectionJob:
                 self.error = payload
         if events:
             tag_redraw()
-        return self.done
 
     def _work(self, post, cancel):  # worker thread: no bpy
         from ..dresg_addon.method.views import select_active_views
@@ -227,8 +240,7 @@ class DRESG_OT_select_views(bpy.types.Operator):
         except DresgError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        job.start()
-        job.join()
+        job.run_blocking()  # background mode: timers do not fire while a script runs, so no worker
         return self._finish(context, job)
 
     def invoke(self, context, event):

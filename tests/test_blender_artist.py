@@ -247,7 +247,7 @@ def test_view_selection_runs_on_a_worker_thread_and_cancels(addon, tmp_path):
     assert job.done and not job.error and not job.cancelled
     expected = addon.dresg_addon.method.views.select_active_views(splats, cameras, scene.dresg.config())
     assert job.result.indices == expected.indices and job.result.per_view_coverage == expected.per_view_coverage
-    assert job.fraction == pytest.approx(3 / 4)  # the last view's progress report
+    assert job.fraction == 1.0 and job.reports == [(1, 4), (2, 4), (3, 4), (4, 4)]  # a report after each camera
 
     stopped = views.SelectionJob(splats, cameras, scene.dresg.config(), [o.name for o in objects])
     stopped.cancel.set()
@@ -293,7 +293,7 @@ def test_every_background_job_leaves_bpy_to_the_main_thread(addon, tmp_path, mon
     selection.start()
     selection.join(120)
     assert selection.done and not selection.error and selection.result.indices
-    assert selection.fraction == pytest.approx(3 / 4)
+    assert selection.fraction == 1.0
 
     config = addon.dresg_addon.method.config.preset("preview", stages=2, proposal_width=32, proposal_height=24)
     small = addon.dresg_addon.scene.orbit.orbit_cameras(splats, 2, width=32, height=24)

@@ -103,7 +103,8 @@ def test_stylize_writes_the_scene_log_views_and_checkpoint_and_resumes(files, tm
     assert cli.main(_stylize_args(files, out, "--save-views", str(views))) == 0
     captured = capsys.readouterr()
     assert f"wrote {out}" in captured.out and "3 active views" in captured.out
-    assert "stage 1/1: fit loss" in captured.err and "post: fit loss" in captured.err
+    assert "Stage 1/1 | colour solve round" in captured.err and "Final colours | colour solve round" in captured.err
+    assert "fit RMSE" in captured.err and "100% done in" in captured.err
     assert "colour fit: bounded least squares over the 3 active views" in captured.err
 
     scene, result = _scene(), read_scene(out)

@@ -621,7 +621,7 @@ def test_select_active_views_orders_views_by_coverage_and_finds_blind_cameras():
     # Progress after each view's render; a cancel stops before the next one.
     seen = []
     select_active_views(scene, cameras, TINY, progress=lambda done, total: seen.append((done, total)))
-    assert seen == [(v, 5) for v in range(5)]
+    assert seen == [(v, 5) for v in range(1, 6)]  # once per camera
     cancel = threading.Event()
 
     def cancel_after_two(done, total):

@@ -1,11 +1,12 @@
 """Menus, so that F3 finds every operator: File > Import / Export, and Object > Gaussian Splats.
 
-The status bar shows the progress of a running stylization.
+The status bar shows the progress of a running stylization or view selection.
 """
 
 import bpy
 
 from ..operators import job
+from ..operators.views import current_selection
 
 OPERATORS = (
     ("dresg.import_splats", "IMPORT"),
@@ -51,6 +52,9 @@ def draw_status(self, context):
     current = job.current()
     if current is not None and current.running:
         self.layout.progress(factor=current.fraction, type="BAR", text=f"Stylize Gaussians: {current.text}")
+    selecting = current_selection()
+    if selecting is not None:
+        self.layout.progress(factor=selecting.fraction, type="BAR", text=f"Select Views: {selecting.text}")
 
 
 classes = (VIEW3D_MT_dresg_splats,)

@@ -259,6 +259,7 @@ def room_needed(scene, cameras, config, out: Path, log_path: Path, checkpoint_di
 
 
 def run(args) -> int:
+    from ..method.bookkeeping import ProgressLines
     from ..method.config import check_run_settings
     from ..method.loop import selection_mask, stylize
     from ..scene.io import write_scene
@@ -310,17 +311,18 @@ def run(args) -> int:
         print(
             f"note: geometry offsets are on: each of the {steps} fit steps renders every active view with "
             "gradients (about 0.6 s per view for a 270k-splat scene at 448x320 on 2 cores, so hours with 16 "
-            "views); --preset cpu keeps the schedule with colour-only fitting. The ETA follows each stage.",
+            "views); --preset cpu keeps the schedule with colour-only fitting. The time left shows once the first stage has ended.",
             file=sys.stderr,
         )
 
+    lines = ProgressLines()
+
     def progress(p):
-        # One line per finished stage (and the post stage), with its last fit loss and the ETA.
-        if args.quiet or p.phase not in ("fit", "post") or p.step < p.steps:
-            return
-        eta = f", eta {p.eta_seconds:.0f} s" if p.eta_seconds == p.eta_seconds else ""
-        label = "post" if p.phase == "post" else f"stage {p.stage}/{p.stages}"
-        print(f"{label}: fit loss {p.loss:.4f}{eta}", file=sys.stderr, flush=True)
+        # The run's fraction, where it is, the fit's RMSE and the time left (bookkeeping.Progress): the first
+        # report of each phase of each stage, and at most one line every 2 s in between.
+        line = None if args.quiet else lines.line(p)
+        if line is not None:
+            print(line, file=sys.stderr, flush=True)
 
     messages = (lambda _m: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     started = time.perf_counter()
@@ -344,6 +346,7 @@ def run(args) -> int:
     except WriteError as error:  # the stages are in the checkpoint: a rerun resumes after the last one
         raise WriteError(f"{error}; {checkpoint_dir} keeps the run, so the same command resumes it") from None
     print(
-        f"wrote {out} ({len(result.scene)} splats, {len(result.selection.indices)} active views, {time.perf_counter() - started:.1f} s); log {log_path}"
+        f"wrote {out} ({len(result.scene)} splats, {result.stylized} of them stylized, "
+        f"{len(result.selection.indices)} active views, {time.perf_counter() - started:.1f} s); log {log_path}"
     )
     return 0

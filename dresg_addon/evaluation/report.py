@@ -689,7 +689,7 @@ def plot_convergence(axes, steps: list, log: list[dict]) -> None:
     if post:
         _series(steps_ax, [s[0] for s in post], [s[3] for s in post], label="post stage", color="C2")
     _decorate(
-        steps_ax, "Fit error of every fit step", "time since the start of stylize (s)", "RMSE (solve) or Eq. 16 (Adam)",
+        steps_ax, "Fit error of every fit step", "time since the start of stylize (s)", "RMSE over covered pixels",
         "each stage fits a new target: the error jumps at stage starts",
     )  # fmt: skip
     # Each stage's gap to its own targets before the fit and what the fit left of it (RMSE over covered pixels).

@@ -1,9 +1,11 @@
 """What a stylization reports and keeps, apart from its maths: progress, cancel, messages, live updates,
 the JSON-lines log, stage checkpoints and saved stage images.
 
-:class:`RunHooks` carries the caller's callbacks (progress with an ETA, a per-stage live update, a
-cancel event, messages); :class:`RunRecord` the files (checkpoint, log, stage images). The loop
-(:mod:`.loop`) calls them between its steps.
+:class:`RunHooks` carries the caller's callbacks (progress, a per-stage live update, a cancel event,
+messages); :class:`ProgressModel` turns where the run is into the one fraction done and time left that
+every display shows (the Blender job's bar, the command line's lines); :class:`RunRecord` the files
+(checkpoint, log, stage images). The loop (:mod:`.loop`) calls them between its steps. torch is imported
+only where a checkpoint is written or read, so the Blender job can share the progress display without it.
 """
 
 from __future__ import annotations
@@ -11,32 +13,270 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 import os
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from ..scene.camera import Camera
 from ..scene.gaussians import GaussianScene
 from ..util.errors import CancelledError, WriteError
 from ..util.fileutil import append_text, atomic_write_bytes
 
+if TYPE_CHECKING:
+    import torch
+
+
+def format_seconds(seconds: float | None) -> str:
+    """``42s``, ``3m 05s``, ``1h 02m``; ``?`` for None, NaN or a negative time."""
+    if seconds is None or not math.isfinite(seconds) or seconds < 0:
+        return "?"
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return f"{seconds}s"
+    if seconds < 3600:
+        return f"{seconds // 60}m {seconds % 60:02d}s"
+    return f"{seconds // 3600}h {seconds % 3600 // 60:02d}m"
+
 
 @dataclass
 class Progress:
-    stage: int  # 0 before the first stage, stages + 1 for the post stage
+    """Where a run is, as one report: what every display shows (:meth:`text`, ``fraction``)."""
+
+    stage: int  # 0 before the first stage (view selection, set-up), stages + 1 for the post stage
     stages: int
-    step: int
+    step: int  # of ``steps`` in this phase: cameras, set-up steps, views, solve rounds or fit steps
     steps: int
-    phase: str  # "select" | "setup" | "proposal" | "fit" | "post" | "done"
-    loss: float
-    eta_seconds: float
-    message: str
+    phase: str  # "select" | "setup" | "proposal" | "fit" | "feedback" | "post" | "done"
+    loss: float  # the fit's RMSE over covered pixels (NaN outside the fits); see Stylization._fit
+    eta_seconds: float  # time left, from the phases' measured times; NaN while it cannot be estimated yet
+    message: str  # what the run is doing, with its counter ("painting view 3/8 (orbit_002)")
+    fraction: float = 0.0  # of the run done, in [0, 1], never decreasing (ProgressModel)
+
+    def text(self) -> str:
+        """One line for a progress bar or a log: the stage, what it does, the fit's RMSE, the time left."""
+        if self.phase == "done":
+            return self.message or "done"
+        if self.phase == "post":
+            parts = ["Final colours"]
+        elif self.stage >= 1:
+            parts = [f"Stage {self.stage}/{self.stages}"]
+        else:
+            parts = []
+        parts.append(self.message or self.phase)
+        if self.loss is not None and math.isfinite(self.loss):
+            parts.append(f"fit RMSE {self.loss:.4f}")
+        estimate = math.isfinite(self.eta_seconds)
+        parts.append(f"{format_seconds(self.eta_seconds)} left" if estimate else "estimating time left")
+        return " | ".join(parts)
+
+
+class ProgressLines:
+    """Which reports a log prints (the command line, Blender in background mode): the first of each phase of each
+    stage, the end of each fit (with its RMSE), and otherwise at most one every ``interval`` seconds."""
+
+    def __init__(self, interval: float = 2.0, clock: Callable[[], float] = time.monotonic):
+        self.interval, self.clock = interval, clock
+        self.last_key: tuple | None = None
+        self.last_time = -math.inf
+
+    def line(self, progress: Progress) -> str | None:
+        """``" 43% Stage 2/6 | ... | 1m 05s left"`` when this report is to be printed, else None."""
+        key, now = (progress.stage, progress.phase), self.clock()
+        fit_end = progress.phase in ("fit", "post") and progress.step >= progress.steps
+        if key == self.last_key and now - self.last_time < self.interval and not fit_end:
+            return None
+        self.last_key, self.last_time = key, now
+        return f"{100 * progress.fraction:3.0f}% {progress.text()}"
+
+
+# --- The fraction done and the time left ------------------------------------------------------------------------
+
+STAGE_PHASES = ("proposal", "fit", "feedback")
+# What a phase costs before the run has timed it, per view (per candidate camera for "select"), in the time of one
+# coverage render of one camera: the bar's shares until then. From the bonsai x Starry Night, preview, 16 orbit
+# cameras, 8 active views, 2 cores: selection 0.8 s a camera, set-up 2.1 s a view (finding the seen splats, the
+# colour fit's matrices, the base renders' style distance), a proposal 0.7 s, a solved fit 0.7 s, the feedback
+# (style distance, re-encoding) 0.3 s. :func:`prior_costs` scales them for Adam fits and sd15 proposals.
+PRIOR_COSTS = {"select": 1.0, "setup": 2.7, "proposal": 0.9, "fit": 0.9, "feedback": 0.35, "post": 0.9}
+# A phase not yet timed is priced like one that has been, in the ratio of their prior costs: the post stage's fit
+# like a stage's fit.
+PRICED_LIKE = {"post": "fit"}
+
+
+def prior_costs(config) -> dict[str, float]:
+    """:data:`PRIOR_COSTS` for a run of ``config`` (a StylizeConfig): Adam fits cost a render with gradients per
+    step and view, sd15 proposals tens of renders per latent update."""
+    costs = dict(PRIOR_COSTS)
+    if not config.solves_colors():
+        costs["fit"] = 0.8 * max(config.fit_steps, 1)
+        costs["post"] = 0.8 * max(config.post_steps, 1)
+    if config.proposal == "sd15":
+        costs["proposal"] = 20.0 * config.updates_per_stage
+    return costs
+
+
+class ProgressModel:
+    """The run's fraction done and time left, as a function of (phase, stage, step) and weights that the run's
+    own measured times update.
+
+    The run is a row of parts: view selection, set-up, then per stage its proposals, fit and feedback, then the
+    post stage. A part weighs the seconds it is expected to take: what it took, once it has ended; else the mean
+    of the parts of its kind that have ended (or of the kind it is priced like, :data:`PRICED_LIKE`); else its
+    prior cost (:data:`PRIOR_COSTS` x its views or cameras) x the seconds per unit of cost the ended parts took.
+    The raw fraction is the weight of the parts before the current one plus step / steps of the current one's,
+    over the weight of them all.
+
+    The fraction shown moves forward only: each report advances it by the share of the remaining raw work done
+    since the previous report, both measured with the weights as they are now. With fixed weights that is the
+    raw fraction itself; when a part's measured time changes the weights, the bar goes on from where it was
+    instead of jumping back; when stages are left out (the early stop), the next report is the post stage's or
+    the end, and the bar jumps forward to it. It reaches 1 at the end.
+
+    The time left is the weight of the parts still to come plus what remains of the current part's expected
+    time; None (shown as "estimating") until every kind of part still to come has been timed once, in practice
+    until the first stage has ended. It counts every stage: when the stages stop early, the run ends sooner.
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.perf_counter):
+        self.clock = clock
+        self.stages, self.post, self.first_stage = 0, False, 1
+        self.counts = {"select": 1, "views": 1}  # candidate cameras, active views
+        self.costs = dict(PRIOR_COSTS)
+        self.timed: dict[tuple[str, int], float] = {}  # (phase, stage) -> seconds, for the parts that ended
+        self.current: tuple[str, int] | None = None
+        self.current_started = 0.0
+        self.last: tuple[int, float] | None = None  # (order, step fraction) of the previous report
+        self.shown = 0.0
+
+    # -- what the run will do ----------------------------------------------------------------------------------
+
+    def plan(self, stages: int, post: bool, costs: dict[str, float] | None = None) -> None:
+        self.stages, self.post = stages, post
+        if costs is not None:
+            self.costs = {**PRIOR_COSTS, **costs}
+
+    def set_counts(self, cameras: int | None = None, views: int | None = None) -> None:
+        """The candidate cameras view selection renders (0: the views were given) and the active views."""
+        if cameras is not None:
+            self.counts["select"] = cameras
+        if views is not None:
+            self.counts["views"] = views
+
+    def adopt(self, entry: dict) -> None:
+        """The times of a stage a resumed run's checkpoint holds (its log entry), as if this run had timed them."""
+        stage = entry.get("stage")
+        if not isinstance(stage, int) or "proposal_seconds" not in entry:
+            return
+        self.timed[("proposal", stage)] = entry["proposal_seconds"]
+        self.timed[("fit", stage)] = max(entry["stage_seconds"] - entry["proposal_seconds"], 0.0)
+        if "feedback_seconds" in entry:
+            self.timed[("feedback", stage)] = entry["feedback_seconds"]
+
+    def order(self, phase: str, stage: int) -> int:
+        if phase == "select":
+            return 0
+        if phase == "setup":
+            return 1
+        if phase in STAGE_PHASES:
+            return 2 + 3 * (min(max(stage, 1), self.stages) - 1) + STAGE_PHASES.index(phase)
+        return 2 + 3 * self.stages + (0 if phase == "post" else 1)  # post, done
+
+    def parts(self) -> list[tuple[str, int]]:
+        """This run's parts in order (stages before ``first_stage`` were done by the run it resumes)."""
+        parts = [("select", 0), ("setup", 0)]
+        for stage in range(self.first_stage, self.stages + 1):
+            parts += [(phase, stage) for phase in STAGE_PHASES]
+        if self.post:
+            parts.append(("post", self.stages + 1))
+        return parts
+
+    # -- the weights -------------------------------------------------------------------------------------------
+
+    def _units(self, phase: str) -> float:
+        count = self.counts["select"] if phase == "select" else self.counts["views"]
+        return self.costs.get(phase, 1.0) * count
+
+    def _kind_seconds(self, phase: str) -> float | None:
+        times = [seconds for (kind, _), seconds in self.timed.items() if kind == phase]
+        return sum(times) / len(times) if times else None
+
+    def _measured(self, phase: str) -> float | None:
+        """Seconds for a part of ``phase`` from the parts that ended, or None when none of its kind (or the kind it
+        is priced like) has."""
+        seconds = self._kind_seconds(phase)
+        if seconds is not None:
+            return seconds
+        like = PRICED_LIKE.get(phase)
+        if like is not None and (seconds := self._kind_seconds(like)) is not None:
+            return seconds * self._units(phase) / max(self._units(like), 1e-12)
+        return None
+
+    def weight(self, phase: str, stage: int) -> float:
+        """Expected seconds of the part (phase, stage) (class docstring)."""
+        if (phase, stage) in self.timed:
+            return self.timed[(phase, stage)]
+        seconds = self._measured(phase)
+        if seconds is not None:
+            return seconds
+        timed_units = sum(self._units(kind) for kind, _ in self.timed)
+        rate = sum(self.timed.values()) / timed_units if timed_units > 0 and self.timed else 1.0
+        return self._units(phase) * rate
+
+    def raw(self, order: int, step_fraction: float) -> float:
+        """Fraction of the expected work done at part ``order``, ``step_fraction`` of the way through it."""
+        if order >= self.order("done", 0):
+            return 1.0
+        weights = [(self.order(*part), self.weight(*part)) for part in self.parts()]
+        total = sum(w for _, w in weights)
+        if total <= 0:
+            return 0.0
+        done = sum(w for o, w in weights if o < order) + sum(w for o, w in weights if o == order) * step_fraction
+        return min(done / total, 1.0)
+
+    # -- a report ----------------------------------------------------------------------------------------------
+
+    def update(self, phase: str, stage: int, step: int, steps: int) -> tuple[float, float | None]:
+        """(fraction shown, seconds left or None) for a report at (phase, stage, step of steps)."""
+        now = self.clock()
+        key = ("done", 0) if phase == "done" else (phase, stage)
+        order = self.order(*key)
+        if self.current is None:
+            self.current, self.current_started = key, now
+        elif order > self.order(*self.current):  # the current part ended: its time becomes its weight
+            self.timed[self.current] = now - self.current_started
+            self.current, self.current_started = key, now
+        order = max(order, self.order(*self.current))
+        fraction = min(max(step / steps, 0.0), 1.0) if steps > 0 else 0.0
+        before = self.raw(*self.last) if self.last is not None else 0.0
+        if self.last is not None and order == self.last[0]:
+            fraction = max(fraction, self.last[1])
+        now_raw = max(self.raw(order, fraction), before)
+        if phase == "done":
+            self.shown = 1.0
+        elif before < 1.0:
+            self.shown += (1.0 - self.shown) * (now_raw - before) / (1.0 - before)
+        self.shown = min(max(self.shown, 0.0), 1.0)
+        self.last = (order, fraction)
+        return self.shown, 0.0 if phase == "done" else self.seconds_left(order, now)
+
+    def seconds_left(self, order: int, now: float) -> float | None:
+        remaining = [part for part in self.parts() if self.order(*part) >= order]
+        if any(part not in self.timed and self._measured(part[0]) is None for part in remaining):
+            return None
+        left = 0.0
+        for part in remaining:
+            weight = self.weight(*part)
+            if self.order(*part) == order:
+                weight = max(weight - (now - self.current_started), 0.0)
+            left += weight
+        return left
 
 
 @dataclass
@@ -52,7 +292,7 @@ class StageUpdate:
 
 
 class RunHooks:
-    """The caller's callbacks, each optional; the run's clock and its ETA."""
+    """The caller's callbacks, each optional; the run's clock and its progress (:class:`ProgressModel`)."""
 
     def __init__(
         self,
@@ -60,19 +300,30 @@ class RunHooks:
         on_stage: Callable[[StageUpdate], None] | None = None,
         cancel: threading.Event | None = None,
         messages: Callable[[str], None] | None = None,
+        clock: Callable[[], float] = time.perf_counter,
     ):
         self.progress, self.on_stage, self.cancel = progress, on_stage, cancel
         self.say = messages or (lambda _message: None)
-        self.start_time = time.perf_counter()
+        self.clock = clock
+        self.start_time = clock()
         self.stages = 0  # set by plan()
-        self.first_stage = 1  # > 1 when resuming from a checkpoint
-        self.post_share = 0.0  # the post stage's cost in stages, for the ETA
+        self.model = ProgressModel(clock)
 
-    def plan(self, stages: int, post_stage: bool) -> None:
-        self.stages, self.post_share = stages, 0.5 if post_stage else 0.0
+    @property
+    def first_stage(self) -> int:
+        """> 1 when resuming from a checkpoint: the stages before it are not this run's work."""
+        return self.model.first_stage
+
+    @first_stage.setter
+    def first_stage(self, stage: int) -> None:
+        self.model.first_stage = stage
+
+    def plan(self, stages: int, post_stage: bool, costs: dict[str, float] | None = None) -> None:
+        self.stages = stages
+        self.model.plan(stages, post_stage, costs)
 
     def elapsed(self) -> float:
-        return time.perf_counter() - self.start_time
+        return self.clock() - self.start_time
 
     def check_cancel(self) -> None:
         if self.cancel is not None and self.cancel.is_set():
@@ -81,16 +332,9 @@ class RunHooks:
     def report(self, stage: int, step: int, steps: int, phase: str, loss: float, message: str = "") -> None:
         if self.progress is None:
             return
-        # Work done by this run in stages (the post stage counts post_share), extrapolated linearly.
-        n_stages, resumed = self.stages, self.first_stage - 1
-        fraction = step / max(steps, 1)
-        done = n_stages + self.post_share * fraction if stage > n_stages else max(stage - 1 + fraction, 0.0)
-        done -= resumed
-        total = n_stages - resumed + self.post_share
-        elapsed = self.elapsed()
-        rate = elapsed / done if done > 0 else float("nan")
-        eta = 0.0 if phase == "done" else rate * max(total - done, 0.0)
-        self.progress(Progress(stage, n_stages, step, steps, phase, float(loss), eta, message))
+        fraction, left = self.model.update(phase, stage, step, steps)
+        eta = float("nan") if left is None else left
+        self.progress(Progress(stage, self.stages, step, steps, phase, float(loss), eta, message, fraction))
 
     def stage_done(self, update: Callable[[], StageUpdate]) -> None:
         """Hand the live view the stage's result (built only when someone listens)."""
@@ -164,6 +408,8 @@ class RunRecord:
     def save_checkpoint(self, stage: int, params, optimizer, states) -> None:
         if self.checkpoint is None:
             return
+        import torch
+
         payload = {
             "run_id": self.run_id,
             "stage": stage,
@@ -205,6 +451,8 @@ class RunRecord:
 
 def _load_checkpoint(path: Path) -> dict | None:
     """A checkpoint written by :meth:`RunRecord.save_checkpoint`, or None when it cannot be read."""
+    import torch
+
     try:
         saved = torch.load(path, weights_only=True)  # tensors and plain containers only: no pickled code
     except Exception:  # a truncated or foreign file of any kind: the run starts over instead

@@ -232,7 +232,7 @@ def projected_solve(
     start: torch.Tensor,  # [N, 3]: the warm start
     settings: ColorSolveSettings,
     weights: Sequence[torch.Tensor | None] | None = None,  # V x [P, 3] per-pixel weights (None: 1)
-    each_round: Callable[[int, float], None] | None = None,  # (round, objective) after each round
+    each_round: Callable[[int, float, torch.Tensor], None] | None = None,  # (round, objective, colours) after each
     anchor: torch.Tensor | None = None,  # [N, 3] c_0 of the anchor term (None: ``start``)
 ) -> ColorSolveResult:
     """min f(c) (+ the anchor term) over c in [0, 1]^(N x 3) by projected Newton-CG rounds (module
@@ -267,7 +267,7 @@ def projected_solve(
         x, value = candidate, candidate_value
         objectives.append(value)
         if each_round is not None:
-            each_round(round_index, value)
+            each_round(round_index, value, x)
         if drop <= settings.tolerance * max(value, 1e-30):
             break
     return ColorSolveResult(x, total, objectives)
@@ -278,7 +278,7 @@ def solve_colors(
     targets: Sequence[torch.Tensor],  # V x [3, H, W] (or [P, 3])
     start: torch.Tensor,  # [N, 3]
     settings: ColorSolveSettings = ColorSolveSettings(),
-    each_round: Callable[[int, float], None] | None = None,  # (round, objective) after each round
+    each_round: Callable[[int, float, torch.Tensor], None] | None = None,  # (round, objective, colours) after each
     optimum: bool = False,
 ) -> ColorSolveResult:
     """The fitted colours in [0, 1]: bounded least squares (anchored to ``start`` when ``settings.anchor`` > 0),

@@ -62,7 +62,11 @@ class FitState:
 
 
 def seen_gaussians(
-    scene: GaussianScene, cameras: Sequence[Camera], settings: RasterSettings, geometry: bool
+    scene: GaussianScene,
+    cameras: Sequence[Camera],
+    settings: RasterSettings,
+    geometry: bool,
+    each_view: Callable[[int], None] | None = None,  # (views rendered so far), after each view: progress
 ) -> tuple[torch.Tensor, list[ColorOnlyRenderer] | None]:
     """The sorted indices [M] of the Gaussians the cameras see, and with geometry frozen the cameras'
     full-scene colour-only renderers (which found them, so the fit needs no second rasterization)."""
@@ -70,14 +74,20 @@ def seen_gaussians(
     fast = None
     if geometry:
         seen_mask = torch.zeros(len(scene), dtype=torch.bool)
-        for camera in cameras:
+        for done, camera in enumerate(cameras, 1):
             with torch.no_grad():
                 vis = render(
                     means, quats, log_scales, logits, torch.zeros_like(means), camera, settings, visibility="all"
                 )
             seen_mask |= vis.visibility > 0
+            if each_view is not None:
+                each_view(done)
     else:
-        fast = [ColorOnlyRenderer(means, quats, log_scales, logits, camera, settings) for camera in cameras]
+        fast = []
+        for done, camera in enumerate(cameras, 1):
+            fast.append(ColorOnlyRenderer(means, quats, log_scales, logits, camera, settings))
+            if each_view is not None:
+                each_view(done)
         seen_mask = torch.stack([f.seen for f in fast]).any(0)
     seen = torch.nonzero(seen_mask).squeeze(-1)
     if seen.numel() == 0:
@@ -255,14 +265,23 @@ class MultiViewFit:
         self.project_gradients, self.pcgrad_eps = project_gradients, pcgrad_eps
         with torch.no_grad():
             self.base_features = [features(r[None]).detach() for r in base_renders] if features else None
+        self.covered: list[torch.Tensor] | None = None  # V x [H, W] bool: the pixels covered_rmse counts
+        self.covered_rmse = float("nan")  # RMSE over the covered pixels of the last step's renders (progress)
 
     def step(self, targets: Sequence[torch.Tensor], where: str) -> float:  # targets: V x [3, H, W]
         """One step toward ``targets``; the mean fit loss over the views. ``where`` names the step in errors."""
         fit, views = self.fit, len(self.renderer)
         self.optimizer.zero_grad(set_to_none=True)
         color_grads, geometry_grads, total = [], [[] for _ in fit.geometry()], 0.0
+        squares, count = 0.0, 0
         for v in range(views):
             image = self.renderer(v, fit)
+            if self.covered is not None:
+                with torch.no_grad():
+                    squares += float(
+                        (image.detach().double() - targets[v].double()).square().sum(0)[self.covered[v]].sum()
+                    )
+                    count += 3 * int(self.covered[v].sum())
             render_features = self.features(image[None]) if self.features else None
             base_features = self.base_features[v] if self.features else None
             loss = losses.fit_loss(image, targets[v], base_features, render_features, self.weights).total
@@ -273,6 +292,7 @@ class MultiViewFit:
             total += float(loss.detach())
         if not math.isfinite(total):
             raise NumericalError(f"the fit loss became non-finite at {where}, so the run stopped")
+        self.covered_rmse = math.sqrt(squares / count) if count else float("nan")
         stacked = torch.stack(color_grads)
         fuse = self.project_gradients and views > 1
         fit.colors.grad = pcgrad.pcgrad_fuse(stacked, self.pcgrad_eps).gradient if fuse else stacked.mean(0)

@@ -35,7 +35,7 @@ from ..scene.gaussians import GaussianScene, blend_colors
 from ..util.errors import CameraError, ConfigError, NumericalError
 from ..util.machine import peak_rss_mb
 from . import views as view_selection
-from .bookkeeping import Progress, RunHooks, RunRecord, StageUpdate, run_id
+from .bookkeeping import Progress, RunHooks, RunRecord, StageUpdate, prior_costs, run_id
 from .color_transfer import covariance_color_transform, coverage_weight
 from .config import StylizeConfig, check_run_settings
 from .fitting import (
@@ -58,6 +58,7 @@ from .views import ActiveViews, scaled_cameras
 
 STROKE_SIZES = (1.5, 2.0, 3.0, 4.0)  # what the footprint note suggests, the smallest that reaches the splats
 EARLY_STOP_WINDOW = 2  # stages over which the style distance must improve (one stage may pause, e.g. a coarse one)
+COVERED = 0.5  # alpha above which a pixel counts as covered (fit_residual's)
 STILL_SCENE = 0.005  # RMSE a stage's fit must move the covered pixels by (about one 8-bit level in 0.8) to count
 
 
@@ -67,6 +68,7 @@ class StylizeResult:
     selection: ActiveViews
     log: list[dict]
     seconds: float
+    stylized: int = 0  # splats the run fitted: the selected (or all) splats that an active view sees
 
 
 def stylize(
@@ -291,16 +293,25 @@ class Stylization:
         torch.manual_seed(config.seed)
         self.stages = stage_timesteps(config.stages, config.updates_per_stage, config.ddim_steps)
         self.gammas = stage_gammas(config.schedule, self.stages)
-        hooks.plan(len(self.stages), config.post_steps > 0)
+        hooks.plan(len(self.stages), config.post_steps > 0, prior_costs(config))
 
     # --- Before the stages ---------------------------------------------------------------------------------
 
     def select_views(self, cameras: Sequence[Camera], views: Sequence[int] | None) -> None:
         """Sec. 4.3: the active views by capped coverage (Eqs. 13-15), or the given ones."""
-        self.hooks.report(0, 0, 1, "select", float("nan"), "selecting views by coverage")
+        hooks, nan = self.hooks, float("nan")
         if views is None:
-            self.selection = view_selection.select_active_views(self.scene, cameras, self.config, mask=self.mask)
+            hooks.model.set_counts(cameras=len(cameras), views=min(len(cameras), self.config.max_views or len(cameras)))
+
+            def each_camera(done: int, total: int) -> None:
+                hooks.report(0, done, total, "select", nan, f"selecting views: {done}/{total} cameras rendered")
+
+            each_camera(0, len(cameras))
+            self.selection = view_selection.select_active_views(
+                self.scene, cameras, self.config, progress=each_camera, cancel=hooks.cancel, mask=self.mask
+            )
         else:
+            hooks.model.set_counts(cameras=0, views=len(views))
             bad = [v for v in views if not 0 <= v < len(cameras)]
             if bad or not views:
                 raise CameraError(f"active views {list(views)} do not index the {len(cameras)} cameras")
@@ -308,23 +319,41 @@ class Stylization:
         chosen = [cameras[v] for v in self.selection.indices]
         self.cameras = scaled_cameras(chosen, self.config.render_scale)
         self.names = [cameras[v].name or f"view_{v:03d}" for v in self.selection.indices]
+        hooks.model.set_counts(views=len(self.cameras))
         self.hooks.say(f"active views: {len(self.cameras)} of {len(cameras)} ({self.selection.reason})")
         self.hooks.check_cancel()
 
     def prepare(self, content_images: dict[int, np.ndarray] | None) -> None:
         """The seen Gaussians and their fit, how wide they are on screen, the proposal references, and the proposal
         states (resumed or new)."""
-        self.hooks.report(0, 0, 1, "setup", float("nan"), "preparing renders")
-        base_renders = self._set_up_fit()
+        views = len(self.cameras)
+        steps = views + 3  # a render per view to find the splats it sees, the fit, the synthesis, the base's distance
+
+        def setup(step: int, what: str) -> None:
+            self.hooks.report(0, step, steps, "setup", float("nan"), f"set-up: {what}")
+            self.hooks.check_cancel()
+
+        setup(0, f"finding the splats the views see (0/{views} views rendered)")
+        base_renders = self._set_up_fit(
+            lambda done: setup(
+                done,
+                f"finding the splats the views see ({done}/{views} views rendered)"
+                if done < views
+                else "building the colour fit",
+            )
+        )
+        setup(views + 1, "preparing the synthesis")
         self._footprint_note()
         self._set_up_proposals(base_renders, content_images)
+        setup(views + 2, "style distance of the base renders")
         self._resume_or_encode(base_renders)
 
-    def _set_up_fit(self) -> list[torch.Tensor]:
-        """The Gaussians the active views see, their fit state, renderer and optimiser; the base renders."""
+    def _set_up_fit(self, each_view: Callable[[int], None] | None = None) -> list[torch.Tensor]:
+        """The Gaussians the active views see, their fit state, renderer and optimiser; the base renders.
+        ``each_view(done)`` after each view's render (the last one: the fit's set-up follows)."""
         config, say = self.config, self.hooks.say
         raster = config.raster_settings()
-        seen, fast = seen_gaussians(self.scene, self.cameras, raster, config.optimize_geometry)
+        seen, fast = seen_gaussians(self.scene, self.cameras, raster, config.optimize_geometry, each_view)
         left_out = len(self.scene) - seen.numel()
         if self.mask is not None:
             seen = seen[torch.from_numpy(self.mask)[seen]]
@@ -408,6 +437,7 @@ class Stylization:
         with torch.no_grad():
             self.alphas = [self.renderer.alpha(v, self.state).detach() for v in range(len(self.cameras))]
         self.coverages = [_resize(a[None].expand(3, -1, -1), *self.size)[0] for a in self.alphas]
+        self.fitter.covered = [a > COVERED for a in self.alphas]  # its steps' RMSE over covered pixels, for progress
 
     def _resume_or_encode(self, base_renders: list[torch.Tensor]) -> None:
         """Resume from a checkpoint of the same run, else encode the base renders; the style distances so far."""
@@ -424,6 +454,8 @@ class Stylization:
                     p.copy_(value)
             self.fitter.optimizer.load_state_dict(saved["optimizer"])
             self.states, self.hooks.first_stage = saved["states"], saved["stage"] + 1
+            for entry in self.record.entries:  # the time left from the stages done, before this run times one
+                self.hooks.model.adopt(entry)
         else:
             self.states = [self.backend.encode(_resize(r, *self.size)) for r in base_renders]
         # Style distances after each stage, the base renders' first (resumed runs take theirs from the log).
@@ -448,10 +480,11 @@ class Stylization:
         if guided:  # views in order, each guided by the earlier ones' proposals seen from it (guides.py)
             depths = [self.renderer.depth(v, self.state) for v in range(len(self.cameras))]
             done: list[torch.Tensor | None] = [None] * len(self.cameras)
-        for i in range(len(self.cameras)):
+        views = len(self.cameras)
+        for i in range(views):
             self.hooks.check_cancel()
-            last = work.energies[-1] if work.energies else float("nan")
-            self.hooks.report(stage.index, i, len(self.cameras), "proposal", last, f"proposal for {self.names[i]}")
+            message = f"painting view {i + 1}/{views} ({self.names[i]})"
+            self.hooks.report(stage.index, i, views, "proposal", float("nan"), message)
             guide = None
             if guided:
                 guide = view_guide(i, list(range(i)), done, depths, self.alphas, self.cameras, self.config.guide_weight)
@@ -488,20 +521,32 @@ class Stylization:
         n = stage.index
         self.work.closure = self._fit(targets, n, "fit", f"stage {n}, fit step")
         self.work.fitted_seconds = time.perf_counter() - self.work.started
+        feedback = "style distance, re-encoding the fitted views" if self.config.feedback else "style distance"
+        self.hooks.report(n, 0, 1, "feedback", float("nan"), feedback)
 
     def _fit(self, targets, stage: int, phase: str, where: str, start: torch.Tensor | None = None) -> dict:
         """Fit ``targets`` (solve or Adam steps; the solve from ``start``, default the current colours); how much of
-        the gap to them the fit closed, for the log."""
+        the gap to them the fit closed, for the log.
+
+        Progress reports one loss throughout, the fit's RMSE over covered pixels (``fit_residual`` in the log): after
+        each round of a solve that of its colours (one colour-only render of the views, a few % of a round), after
+        each Adam step that of the renders the step took."""
         before = self.work.renders or self.renderer.all(self.state)
         optimum, optimum_seconds = None, 0.0
         if self.solver is not None:
             rounds = self.config.solve_rounds
-            values = sum(t.numel() for t in targets)
 
-            def each_round(index: int, objective: float) -> None:  # progress shows the RMSE over all pixels
-                self.hooks.report(stage, index, rounds, phase, math.sqrt(objective / values), "solving the colour fit")
+            def counter(index: int) -> str:
+                return f"colour solve round {index} (at most {rounds})"
+
+            def each_round(index: int, _objective: float, colors: torch.Tensor) -> None:
+                if self.hooks.progress is not None:
+                    renders = self.renderer.all(replace(self.state, colors=colors))
+                    rmse = fit_residual(renders, targets, self.alphas, COVERED)
+                    self.hooks.report(stage, index, rounds, phase, rmse, counter(index))
                 self.hooks.check_cancel()
 
+            self.hooks.report(stage, 0, rounds, phase, float("nan"), "colour solve starting")
             self.hooks.check_cancel()
             try:
                 result = self.solver.solve(targets, each_round, start)
@@ -516,15 +561,17 @@ class Stylization:
                 optimum = fit_residual(squares, targets, self.alphas)
             elif result.least_squares is not None:  # the fit is the plain least-squares solve
                 optimum = "fit"
-            self.hooks.report(stage, rounds, rounds, phase, math.sqrt(result.objectives[-1] / values))
+            done, total, counted = len(result.objectives) - 1, rounds, counter(len(result.objectives) - 1)
             iterations = result.iterations
         else:
             steps = self.config.fit_steps if phase == "fit" else self.config.post_steps
             self.work.losses = self._fit_steps(targets, steps, stage, phase, where)
+            done, total, counted = steps, steps, f"fit step {steps}/{steps}"
             iterations = steps
         after = self.renderer.all(self.state)
         self.work.renders = after
         gap, left = fit_residual(before, targets, self.alphas), fit_residual(after, targets, self.alphas)
+        self.hooks.report(stage, max(done, total), total, phase, left, counted)  # the fit's end: on to the next
         if optimum == "fit":
             optimum = left  # the solve's result is the joint least-squares optimum (to its tolerance)
         return {
@@ -573,6 +620,7 @@ class Stylization:
             **work.closure,
             "stage_seconds": work.fitted_seconds,
             "proposal_seconds": work.proposal_seconds,
+            "feedback_seconds": time.perf_counter() - work.started - work.fitted_seconds,
             "seconds": self.hooks.elapsed(),
             "peak_rss_mb": peak_rss_mb(),
             "views": len(self.cameras),
@@ -598,6 +646,7 @@ class Stylization:
         steps = self.config.post_steps
         if steps <= 0:
             return
+        self.hooks.report(len(self.stages) + 1, 0, 1, "post", float("nan"), "colour transfer")
         self.hooks.check_cancel()
         renders = self.renderer.all(self.state)
         style = torch.from_numpy(self.style_rgb).permute(2, 0, 1).contiguous()
@@ -634,13 +683,14 @@ class Stylization:
         scene = result_scene(self.scene, self.state, self.config.sh_rest == "zero", self.mask is not None)
         seconds = self.hooks.elapsed()
         log = self.record.entries
-        last_loss = log[-1]["fit_loss_last"] if log else float("nan")
+        last_loss = log[-1].get("fit_residual", float("nan")) if log else float("nan")  # the fit RMSE, as reported
         self.hooks.report(len(self.stages), 1, 1, "done", last_loss, f"done in {seconds:.1f} s")
-        return StylizeResult(scene, self.selection, log, seconds)
+        return StylizeResult(scene, self.selection, log, seconds, int(self.state.seen.numel()))
 
     # --- Shared by the steps ------------------------------------------------------------------------------
 
     def _fit_steps(self, targets, steps: int, stage: int, phase: str, where: str) -> list[float]:
+        """Adam steps; the log keeps each step's Eq. 16 loss, progress the RMSE over covered pixels of its renders."""
         losses = []
         for step in range(steps):
             self.hooks.check_cancel()
@@ -648,7 +698,9 @@ class Stylization:
                 losses.append(self.fitter.step(targets, f"{where} {step + 1}"))
             except NumericalError as error:
                 raise NumericalError(f"{error}{self.record.kept_note()}") from None
-            self.hooks.report(stage, step + 1, steps, phase, losses[-1])
+            if step + 1 < steps:  # the last step's report is the fit's end, with the RMSE after it
+                counter = f"fit step {step + 1}/{steps}"
+                self.hooks.report(stage, step + 1, steps, phase, self.fitter.covered_rmse, counter)
         return losses
 
     def style_distance(self, renders: list[torch.Tensor]) -> float:

@@ -1,0 +1,192 @@
+"""Issue 28, item 2: progress that tells the truth. The fraction (forward only, set-up included, the end at 1), the
+time left (from measured phase times, "estimating" until it can be), one loss scale, counters named as the panel
+names them, the count of stylized splats, and view selection's report per camera. The model on a simulated clock,
+then real runs of a tiny scene through the engine's progress callback."""
+
+import math
+import time
+
+import numpy as np
+import pytest
+from test_pipeline import TINY, ring_cameras, run, sphere_scene
+
+from dresg_addon.method.bookkeeping import Progress, ProgressLines, ProgressModel, format_seconds
+from dresg_addon.method.views import select_active_views
+
+# --- the model on a simulated clock ----------------------------------------------------------------------------
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def simulate(model: ProgressModel, clock: Clock, stages_run: int, stages: int, slow_stage: int = 0, post=True):
+    """A run of 4 cameras, 3 views, ``stages_run`` of ``stages`` stages (then the post stage) on ``clock``: 1 s a
+    camera, a set-up step, a view's proposal, a solve round, a feedback; stage ``slow_stage`` 10x slower. Returns
+    (seconds, fraction, seconds left or None) of each report."""
+    reports = []
+
+    def report(phase, stage, step, steps, seconds):
+        fraction, left = model.update(phase, stage, step, steps)
+        reports.append((clock.now, fraction, left))
+        clock.now += seconds
+
+    model.plan(stages, post)
+    model.set_counts(cameras=4, views=3)
+    for camera in range(5):
+        report("select", 0, camera, 4, 1.0 if camera < 4 else 0.0)
+    for step in range(6):
+        report("setup", 0, step, 6, 1.0)
+    for stage in range(1, stages_run + 1):
+        slow = 10.0 if stage == slow_stage else 1.0
+        for view in range(3):
+            report("proposal", stage, view, 3, slow)
+        for step in range(3):
+            report("fit", stage, step, 3, slow)
+        report("fit", stage, 3, 3, 0.0)
+        report("feedback", stage, 0, 1, slow)
+    if post:
+        for step in range(3):
+            report("post", stages + 1, step, 3, 1.0)
+    report("done", 0, 1, 1, 0.0)
+    return reports
+
+
+def test_the_fraction_moves_forward_to_1_and_the_time_left_is_exact_once_a_stage_is_timed():
+    clock = Clock()
+    reports = simulate(ProgressModel(clock), clock, stages_run=4, stages=4)
+    fractions = [fraction for _, fraction, _ in reports]
+    assert all(b >= a for a, b in zip(fractions, fractions[1:]))
+    assert fractions[0] == 0.0 and fractions[-1] == 1.0
+    total = reports[-1][0]
+    # Set-up gets its share of the bar: 4 s of selection and 6 s of set-up of the 10 + 4 x 7 + 3 = 41 s.
+    after_setup = next(f for t, f, _ in reports if t >= 10.0)
+    assert 0.1 < after_setup < 0.4
+    # "Estimating" (None) until the first stage has ended (after 10 + 7 s), then the exact end: every phase costs
+    # what its first one did.
+    first = next(i for i, (_, _, left) in enumerate(reports) if left is not None)
+    assert reports[first][0] == pytest.approx(17.0)
+    for now, _, left in reports[first:]:
+        assert now + left == pytest.approx(total)
+
+
+def test_an_early_stop_jumps_the_bar_forward_and_a_slow_stage_never_moves_it_back():
+    clock = Clock()
+    reports = simulate(ProgressModel(clock), clock, stages_run=2, stages=6, slow_stage=2)
+    fractions = [fraction for _, fraction, _ in reports]
+    assert all(b >= a for a, b in zip(fractions, fractions[1:]))
+    assert fractions[-1] == 1.0
+    # The post stage follows stage 2 of 6: the bar jumps over the four stages left out.
+    post = next(i for i, (now, _, _) in enumerate(reports) if now >= reports[-1][0] - 3.0)
+    assert fractions[post] - fractions[post - 1] > 0.3
+    # The estimate counts every stage (an upper bound when the stages stop early) and follows the slow stage.
+    lefts = [(now, left) for now, _, left in reports if left is not None]
+    assert lefts and all(left >= 0 for _, left in lefts)
+
+
+def test_a_resumed_run_estimates_from_the_stages_in_its_checkpoint():
+    clock = Clock()
+    model = ProgressModel(clock)
+    model.plan(3, False)
+    model.first_stage = 3
+    model.update("setup", 0, 0, 1)
+    clock.now = 5.0
+    assert model.update("proposal", 3, 0, 2)[1] is None  # nothing of a stage timed yet
+    for stage in (1, 2):
+        model.adopt({"stage": stage, "proposal_seconds": 2.0, "stage_seconds": 5.0, "feedback_seconds": 1.0})
+    fraction, left = model.update("proposal", 3, 1, 2)
+    assert left == pytest.approx(2.0 + 3.0 + 1.0)  # this stage's proposals (none of its 2 s spent yet), fit, feedback
+    assert 0 < fraction < 1
+
+
+def test_the_text_names_the_stage_its_counter_the_rmse_and_the_time_left():
+    p = Progress(2, 6, 3, 6, "fit", 0.04271, 65.0, "colour solve round 3 (at most 6)", 0.4)
+    assert p.text() == "Stage 2/6 | colour solve round 3 (at most 6) | fit RMSE 0.0427 | 1m 05s left"
+    p = Progress(0, 6, 3, 16, "select", math.nan, math.nan, "selecting views: 3/16 cameras rendered", 0.05)
+    assert p.text() == "selecting views: 3/16 cameras rendered | estimating time left"
+    assert Progress(7, 6, 1, 6, "post", 0.05, 3.0, "colour solve round 1 (at most 6)").text().startswith("Final")
+    assert format_seconds(3725) == "1h 02m" and format_seconds(math.nan) == "?"
+    lines, now = ProgressLines(2.0, clock=lambda: now), 0.0
+    assert lines.line(p) is not None and lines.line(p) is None  # the same phase within 2 s: not printed again
+    now = 2.5
+    assert lines.line(p) is not None
+
+
+# --- real runs -----------------------------------------------------------------------------------------------
+
+
+def _timed_run(config, **kwargs):
+    """A run with every report and the time since the start of stylize when it came; the result and its time."""
+    reports = []
+    started = time.perf_counter()
+    result = run(config=config, progress=lambda p: reports.append((time.perf_counter() - started, p)), **kwargs)
+    return reports, result, time.perf_counter() - started
+
+
+def test_a_stylization_reports_a_rising_fraction_one_loss_scale_and_estimates_near_its_time():
+    """The engine's callback on a tiny run of 4 stages (no early stop): the fraction never decreases and ends at 1;
+    "estimating" until the first stage has ended, then each estimate of the end within 3x of the run's time (2x is
+    the aim: tiny runs' phases take milliseconds, so the bound is generous); every loss on the fit RMSE's scale."""
+    config = TINY.with_(stages=4, early_stop=0.0)
+    scene, cameras = sphere_scene(2000), ring_cameras(4, 96, 64)
+    reports, result, seconds = _timed_run(config, scene=scene, cameras=cameras)
+    fractions = [p.fraction for _, p in reports]
+    assert all(b >= a for a, b in zip(fractions, fractions[1:])), fractions
+    assert fractions[-1] == 1.0 and reports[-1][1].phase == "done"
+    assert sum(p.phase == "select" for _, p in reports) == len(cameras) + 1  # the start, then one per camera
+    assert max(p.fraction for _, p in reports if p.stage == 0) > 0.05  # view selection and set-up have a share
+    estimated = [(now, p) for now, p in reports if math.isfinite(p.eta_seconds)]
+    first = reports.index(next(r for r in reports if math.isfinite(r[1].eta_seconds)))
+    assert all("estimating time left" in p.text() for _, p in reports[:first])
+    assert reports[first][1].stage == 2  # once stage 1 has ended
+    for now, p in estimated:
+        assert seconds / 3 <= now + p.eta_seconds <= 3 * seconds, (now, p.eta_seconds, seconds, p.text())
+    # One scale: the fit's RMSE over covered pixels, the last one the log's.
+    losses = [p.loss for _, p in reports if math.isfinite(p.loss)]
+    assert losses and all(0 <= loss < 1 for loss in losses)
+    assert reports[-1][1].loss == pytest.approx(result.log[-1]["fit_residual"])
+    for entry in result.log[:-1]:  # each fit's end reports the log's fit residual
+        ends = [p for _, p in reports if p.phase == "fit" and p.stage == entry["stage"] and p.step == p.steps]
+        assert ends[-1].loss == pytest.approx(entry["fit_residual"])
+
+
+@pytest.mark.parametrize("color_fit", ["solve", "adam"])
+def test_the_fit_counter_names_rounds_or_steps_as_the_settings_do(color_fit):
+    config = TINY.with_(stages=1, color_fit=color_fit, fit_steps=3, post_steps=2)
+    reports, _, _ = _timed_run(config)
+    fits = [p for _, p in reports if p.phase == "fit" and p.step > 0]
+    posts = [p for _, p in reports if p.phase == "post" and p.step > 0]
+    if color_fit == "solve":
+        assert all(p.message.startswith("colour solve round ") for p in fits + posts)
+        assert all(p.message.endswith(f"(at most {config.solve_rounds})") for p in fits + posts)
+    else:  # the panel's Fit Steps and Final Colour Steps
+        assert [p.message for p in fits] == ["fit step 1/3", "fit step 2/3", "fit step 3/3"]
+        assert [p.message for p in posts] == ["fit step 1/2", "fit step 2/2"]
+        assert all(0 <= p.loss < 1 for p in fits + posts)
+
+
+def test_the_result_counts_the_splats_it_stylized():
+    """The splats the run fitted: those an active view sees, of the selection when there is one (the Blender report
+    and the command line's summary say this count)."""
+    scene = sphere_scene(400, far=50)
+    everything = run(scene=scene)
+    assert 300 < everything.stylized <= 400  # the far splats no view sees are left out
+    assert everything.stylized == everything.log[0]["gaussians_optimised"]
+    mask = np.zeros(len(scene), bool)
+    mask[:150] = True
+    mask[-10:] = True  # 10 of them out of every view
+    selected = run(scene=scene, mask=mask)
+    assert 100 < selected.stylized <= 150 and selected.stylized == selected.log[0]["gaussians_optimised"]
+    changed = np.abs(selected.scene.sh_dc - scene.sh_dc).max(1) > 0
+    assert not changed[~mask].any() and 0.9 * selected.stylized <= changed.sum() <= selected.stylized
+
+
+def test_view_selection_reports_once_per_camera():
+    cameras = ring_cameras(5)
+    calls = []
+    select_active_views(sphere_scene(), cameras, TINY, progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(k, 5) for k in range(1, 6)]
