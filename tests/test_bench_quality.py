@@ -47,7 +47,7 @@ def test_quality_evaluate_reports_every_measured_column(case):
     assert all(label in table for label in NEW_COLUMNS.values())
 
 
-def test_quality_verdicts_check_texture_kept_and_shapes_per_scene():
+def test_quality_verdicts_check_texture_kept_over_the_pairs_and_shapes_per_scene():
     def row(texture, shapes, sw=0.5):
         values = {key: sw for key, _, _ in quality.COLUMNS}
         return {**values, "texture_kept": texture, "shapes": shapes, "seconds": 1.0, "peak_rss": 1e9}
@@ -60,9 +60,14 @@ def test_quality_verdicts_check_texture_kept_and_shapes_per_scene():
     text = "\n".join(quality.verdicts(results, ["colour-transfer", "preview"], quick=True))
     assert "texture kept ↓" in text and "shapes ↑" in text
     line = next(line for line in text.splitlines() if "per scene" in line)
-    assert "texture kept bonsai 0.250, luigi 0.500" in line and "shapes bonsai 0.650, luigi 0.400" in line
-    assert f"<= {quality.TARGET_TEXTURE_KEPT} on every scene: NOT met" in line
+    assert "texture kept 0.333 over the pairs" in line and "per scene bonsai 0.250, luigi 0.500" in line
+    assert "shapes bonsai 0.650, luigi 0.400" in line
+    assert f"<= {quality.TARGET_TEXTURE_KEPT} over the pairs and on the bonsai: met" in line  # mean 0.333, bonsai 0.25
     assert f">= {quality.TARGET_SHAPES} on every scene: NOT met" in line
+    results[("luigi", "b")] = {"colour-transfer": row(0.9, 0.9, 1.0), "preview": row(0.9, 0.9)}  # the mean over 0.35
+    line = next(line for line in quality.verdicts(results, ["colour-transfer", "preview"], True) if "per scene" in line)
+    assert "on the bonsai: NOT met" in line
+    del results[("luigi", "b")]
     del results[("luigi", "a")]
     line = next(line for line in quality.verdicts(results, ["colour-transfer", "preview"], True) if "per scene" in line)
     assert line.count(": met") == 2
