@@ -772,20 +772,22 @@ def test_early_stop_leaves_out_the_remaining_stages_and_says_so():
     assert all(math.isfinite(e["style_distance"]) for e in full.log if e["stage"] != "post")
 
 
+@pytest.mark.slow  # about 1.5 min on 2 cores: a preview run at the presets' size
 def test_synth_stylization_is_as_consistent_across_novel_views_as_a_colour_transfer():
     """The fitted scene's short-range warp error on views it was not fitted on stays within 1.2x that of a
     per-splat colour transfer (whose error is the scene's own view-dependence floor), while it moves the
-    renders toward the style more than the colour transfer does."""
+    renders toward the style more than the colour transfer does. At the presets' size: at half of it the painted
+    marks are a few pixels wide and the warp's resampling costs them more (1.66x there, 0.84x in the quality bench)."""
     from dresg_addon.evaluation.metrics import consistency_rmse, sliced_wasserstein_patches
     from dresg_addon.method.color_transfer import transfer_scene_colors
     from dresg_addon.scene.demo import demo_scene, demo_style_image
     from dresg_addon.scene.orbit import orbit_cameras
 
     scene = demo_scene()
-    train = orbit_cameras(scene, 8, width=224, height=160)
-    novel = orbit_cameras(scene, 8, width=224, height=160, azimuth_offset_deg=22.5)  # between them
+    train = orbit_cameras(scene, 8, width=448, height=320)
+    novel = orbit_cameras(scene, 8, width=448, height=320, azimuth_offset_deg=22.5)  # between them
     style = demo_style_image(448, 320)  # the demo's generated painting: swirling strokes in a few hues
-    config = PRESETS["preview"].with_(proposal_width=224, proposal_height=160)
+    config = PRESETS["preview"].with_(proposal_width=448, proposal_height=320)
     stylized = run(scene, train, style, config).scene
     renders = [render_scene(scene, c) for c in train]
     baseline = transfer_scene_colors(
