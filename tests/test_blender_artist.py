@@ -168,6 +168,17 @@ def test_stroke_size_and_paint_scene_reach_the_run(addon, tmp_path):
     assert panel.index("stroke_size") < panel.index("scene_weight") < panel.index("preset")
 
 
+def _quick_selection_scene(tmp_path):
+    """300 splats imported, 3 orbit cameras and a one-stage preview at 32x24: (the object, the settings)."""
+    obj = _import(tmp_path, _scene(n=300, spread=0.5))
+    bpy.ops.dresg.add_orbit_cameras(count=3)
+    settings = bpy.context.scene.dresg
+    for name, value in {"stages": 1, "post_steps": 2, "proposal_width": 32, "proposal_height": 24}.items():
+        setattr(settings, name, value)
+    settings.preset, settings.max_views = "preview", 3
+    return obj, settings
+
+
 def _drawn(panel) -> list:
     """The layout calls of a panel's draw()."""
     calls = []
@@ -328,12 +339,7 @@ def test_two_paintings_on_two_selections_and_restore_per_selection(addon, tmp_pa
 
     ops = addon.operators
     sm_ = addon.dresg_addon.scene.splat_mesh
-    obj = _import(tmp_path, _scene(n=300, spread=0.5))
-    bpy.ops.dresg.add_orbit_cameras(count=3)
-    settings = bpy.context.scene.dresg
-    for name, value in {"stages": 1, "post_steps": 2, "proposal_width": 32, "proposal_height": 24}.items():
-        setattr(settings, name, value)
-    settings.preset, settings.max_views = "preview", 3
+    obj, settings = _quick_selection_scene(tmp_path)
     for name, colour in (("red", (0.9, 0.1, 0.1)), ("blue", (0.1, 0.2, 0.9))):
         noise = np.random.default_rng(len(name)).uniform(-0.1, 0.1, (24, 32, 3))
         write_image(tmp_path / f"{name}.png", np.clip(np.float32(colour) + noise, 0, 1).astype(np.float32))

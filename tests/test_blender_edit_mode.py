@@ -4,7 +4,7 @@ operators."""
 
 import numpy as np
 import pytest
-from test_blender_artist import _import, _scene
+from test_blender_artist import _import, _quick_selection_scene, _scene
 
 from dresg_addon.scene import splat_mesh as sm
 from dresg_addon.util.imageio import write_image
@@ -58,12 +58,7 @@ def test_stylize_restore_export_and_views_on_the_edit_mode_selection(addon, tmp_
     (Selection) brings back the selected ones' colours, Restore (All) every one; Stylize on All in Edit Mode too."""
     pytest.importorskip("torch")
     ops = addon.operators
-    obj = _import(tmp_path, _scene(n=300, spread=0.5))
-    bpy.ops.dresg.add_orbit_cameras(count=3)
-    settings = bpy.context.scene.dresg
-    for name, value in {"stages": 1, "post_steps": 2, "proposal_width": 32, "proposal_height": 24}.items():
-        setattr(settings, name, value)
-    settings.preset, settings.max_views = "preview", 3
+    obj, settings = _quick_selection_scene(tmp_path)
     noise = np.random.default_rng(3).uniform(-0.1, 0.1, (24, 32, 3))
     write_image(tmp_path / "red.png", np.clip(np.float32([0.9, 0.1, 0.1]) + noise, 0, 1).astype(np.float32))
     settings.style_path = str(tmp_path / "red.png")
