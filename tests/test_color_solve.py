@@ -276,3 +276,24 @@ def test_layer_agreement_reaches_the_dense_optimum_and_pulls_blended_splats_to_o
     with pytest.raises(ConfigError, match="layer_agreement"):
         ColorSolveSettings(layer_agreement=-1.0)
     assert StylizeConfig(layer_agreement=0.5).solve_settings().layer_agreement == 0.5  # the run's setting reaches it
+
+
+def test_view_disagreement_is_one_when_the_views_agree_and_grows_when_their_marks_differ(small):
+    _, views = small
+    truth = torch.from_numpy(np.random.default_rng(6).uniform(0.2, 0.8, (80, 3)).astype(np.float32))
+    settings = ColorSolveSettings(tolerance=1e-6, max_rounds=30, cg_iterations=16)
+    agreeing = views.images(truth)  # one set of colours shows every target
+    result = solve_colors(views, agreeing, torch.full((80, 3), 0.5), settings, optimum=True)
+    assert result.disagreement.ratio == pytest.approx(1.0, abs=0.05)
+    assert max(result.disagreement.joint) < 0.02
+    # Each view painted with its own marks: the joint optimum averages them, each view alone keeps its own.
+    rng = np.random.default_rng(7)
+    painted = [
+        views.images(torch.from_numpy(rng.uniform(0, 1, (80, 3)).astype(np.float32)))[v] for v in range(len(views))
+    ]
+    result = solve_colors(views, painted, torch.full((80, 3), 0.5), settings, optimum=True)
+    single, joint = result.disagreement.single, result.disagreement.joint
+    assert len(single) == len(joint) == len(views)
+    assert all(s <= j + 1e-4 for s, j in zip(single, joint))
+    assert result.disagreement.ratio > 2.0
+    assert solve_colors(views, painted, torch.full((80, 3), 0.5), settings).disagreement is None

@@ -96,7 +96,27 @@ class ColorSolveResult:
     objectives: list[float] = field(default_factory=list)  # f at the start and after each round
     # [N, 3] the plain least-squares optimum (no anchor, no robust weights), when it was computed
     least_squares: torch.Tensor | None = None
-    optimum_seconds: float = 0.0  # time the second solve for ``least_squares`` took (a diagnostic, not the fit)
+    optimum_seconds: float = 0.0  # time the diagnostic solves took (``least_squares``, ``disagreement``; not the fit)
+    disagreement: ViewDisagreement | None = None  # with ``optimum``: how far the views' targets disagree
+
+
+@dataclass
+class ViewDisagreement:
+    """Per active view, the RMSE (covered pixels) of the joint least-squares optimum and of that view solved alone.
+
+    A view solved alone fits its target as well as its splats can; the joint optimum fits it worse only because
+    the other views ask the same splats for other colours. ``ratio`` is the views' mean joint RMSE over their
+    mean single-view RMSE, each plus one 8-bit step (residuals below it are invisible, and their ratio noise):
+    1 when the targets agree, larger the more each view's marks are averaged away.
+    """
+
+    joint: list[float]
+    single: list[float]
+
+    @property
+    def ratio(self) -> float:
+        step = 1.0 / 255.0
+        return (sum(self.joint) / len(self.joint) + step) / (sum(self.single) / len(self.single) + step)
 
 
 class LinearViews:
@@ -273,6 +293,34 @@ def projected_solve(
     return ColorSolveResult(x, total, objectives)
 
 
+def _covered_rmse(image: torch.Tensor, target: torch.Tensor, alpha: torch.Tensor, covered: float) -> float:
+    mask = alpha.reshape(-1) > covered  # [P]
+    if not bool(mask.any()):
+        return 0.0
+    return float((image[mask].double() - target[mask].double()).square().mean().sqrt())
+
+
+def view_disagreement(
+    views: LinearViews,
+    targets: Sequence[torch.Tensor],  # V x [P, 3]
+    joint: torch.Tensor,  # [N, 3] the joint least-squares optimum
+    settings: ColorSolveSettings,
+    covered: float = 0.5,
+) -> ViewDisagreement:
+    """Each view's residual at the joint optimum against its own bounded least-squares optimum (each solve warm-
+    started from ``joint``, unanchored), over its covered pixels (alpha > ``covered``). One single-view solve per
+    view costs about one joint solve: a diagnostic, run when the optimum is logged."""
+    plain = replace(settings, anchor=0.0, layer_agreement=0.0, robust_power=2.0)
+    joint_rmse, single_rmse = [], []
+    for m, b, target in zip(views.maps, views.constants, targets):
+        alpha = m.matvec(torch.ones(m.shape[1], 1))
+        alone = LinearViews([m], [b])
+        colors = projected_solve(alone, [target], joint, plain).colors
+        joint_rmse.append(_covered_rmse(m.matvec(joint) + b, target, alpha, covered))
+        single_rmse.append(_covered_rmse(m.matvec(colors) + b, target, alpha, covered))
+    return ViewDisagreement(joint_rmse, single_rmse)
+
+
 def solve_colors(
     views: LinearViews,
     targets: Sequence[torch.Tensor],  # V x [3, H, W] (or [P, 3])
@@ -286,7 +334,8 @@ def solve_colors(
 
     ``least_squares`` of the result holds the plain bounded least-squares optimum, the joint optimum the log
     reports: the least-squares solve itself when it is unanchored, else, only when ``optimum`` is asked for,
-    a second solve without the anchor, warm-started from the fit. ``each_round`` is called after every round
+    a second solve without the anchor, warm-started from the fit. ``optimum`` also measures how far the views
+    disagree at that optimum (``view_disagreement``). ``each_round`` is called after every round
     of the fit (progress; it may raise to cancel).
     """
     flat = [t.permute(1, 2, 0).reshape(-1, 3) if t.dim() == 3 else t.reshape(-1, 3) for t in targets]
@@ -311,10 +360,12 @@ def solve_colors(
             robust = projected_solve(views, flat, result.colors, settings, weights, each_round, anchor)
             robust.iterations += result.iterations
             result = robust
+    started = time.perf_counter()
     if least_squares is None and optimum:
-        started = time.perf_counter()
         plain = replace(settings, anchor=0.0, layer_agreement=0.0)
         least_squares = projected_solve(views, flat, result.colors, plain).colors
+    if optimum:
+        result.disagreement = view_disagreement(views, flat, least_squares, settings)
         result.optimum_seconds = time.perf_counter() - started
     result.least_squares = least_squares
     return result

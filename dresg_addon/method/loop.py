@@ -532,7 +532,7 @@ class Stylization:
         each round of a solve that of its colours (one colour-only render of the views, a few % of a round), after
         each Adam step that of the renders the step took."""
         before = self.work.renders or self.renderer.all(self.state)
-        optimum, optimum_seconds = None, 0.0
+        optimum, optimum_seconds, disagreement = None, 0.0, {}
         if self.solver is not None:
             rounds = self.config.solve_rounds
 
@@ -556,6 +556,12 @@ class Stylization:
                 ) from None
             self.work.losses = result.objectives
             optimum_seconds = result.optimum_seconds
+            if result.disagreement is not None:
+                disagreement = {
+                    "view_residual_joint": result.disagreement.joint,
+                    "view_residual_single": result.disagreement.single,
+                    "view_disagreement": result.disagreement.ratio,
+                }
             if result.least_squares is not None and result.least_squares is not result.colors:
                 squares = self.renderer.all(replace(self.state, colors=result.least_squares))
                 optimum = fit_residual(squares, targets, self.alphas)
@@ -582,6 +588,7 @@ class Stylization:
             "fit_moved": fit_residual(after, before, self.alphas),
             "fit_iterations": iterations,
             "optimum_seconds": optimum_seconds,
+            **disagreement,
         }
 
     def feed_back(self, stage: Stage) -> None:
