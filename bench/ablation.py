@@ -14,10 +14,10 @@ gradients averaged instead of PCGrad); image-space scaling (the residual target 
 space instead of RGB logits); and the residual-strength schedules fixed-1, fixed-2, triangle and
 timestep-cosine against the SNR-balanced default.
 
-Pairs: the shared bonsai (orbit cameras) with two shared paintings when ../shared/data is present,
-else the built-in demo scene and painting. Metrics (``dresg_addon.evaluation.metrics`` through
-``dresg_addon.evaluation.report.ViewEvaluator``) on the novel views between the orbit cameras (covered pixels),
-averaged over the pairs: sliced
+Pairs: the shared bonsai (orbit cameras) with two shared paintings when ../shared/data is present
+(``bench/report.py``'s defaults), else the built-in demo scene and painting. Metrics
+(``dresg_addon.evaluation.views.evaluate_views``, as in ``dresg evaluate`` and ``bench/quality.py``) on the novel
+views between the orbit cameras (covered pixels), averaged over the pairs: sliced
 Wasserstein distances of colours and 7x7 patches to the style (lower is better), SSIM and gradient
 structure to the base render (higher is better), masked RMSE of the exact warp for gap 1 and N/2
 (lower is better), and the stylization's wall time. ``--quick`` shrinks the base configuration like
@@ -54,7 +54,7 @@ METRICS = (
     ("sw_colors", "SW colour ↓", 4),
     ("sw_patches", "SW patch ↓", 4),
     ("ssim", "SSIM ↑", 3),
-    ("gs", "GS ↑", 3),
+    ("structure", "GS ↑", 3),
     ("short_rmse", "short RMSE ↓", 4),
     ("long_rmse", "long RMSE ↓", 4),
 )
@@ -84,7 +84,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def base_config(args):
-    from dresg_addon.evaluation.report import quick_config
+    from dresg_addon.evaluation.report_measure import quick_config
     from dresg_addon.method.config import preset
     from dresg_addon.util.errors import ConfigError
 
@@ -126,31 +126,36 @@ def chosen_variants(args, proposal: str):
 
 
 def run(args) -> dict:
-    from dresg_addon.evaluation.report import (
+    from report import shared_defaults  # bench/, beside this script
+
+    from dresg_addon.evaluation.report_measure import (
         ReportOptions,
-        ViewEvaluator,
         load_inputs,
         machine_description,
         stylize_with_log,
     )
+    from dresg_addon.evaluation.views import base_views, evaluate_views
 
     machine = machine_description()
     config = base_config(args)
-    options = ReportOptions(
-        scene=args.scene, styles=tuple(args.styles or ()), width=args.width, height=args.height, views=args.views
-    ).resolved()
+    defaults = shared_defaults(args.scene, args.styles, quick=False)
+    options = ReportOptions(width=args.width, height=args.height, views=args.views, **defaults).resolved()
     inputs = load_inputs(options)
     variants = chosen_variants(args, config.proposal)
     print(f"{inputs.scene_label}; styles: {', '.join(n for n, _ in inputs.styles)}", file=sys.stderr)
     results = {key: [] for key, *_ in variants}
     started = time.perf_counter()
-    evaluator = ViewEvaluator(inputs.scene, inputs.eval_cameras)
+    base = base_views(inputs.scene, inputs.eval_cameras)
     for style_name, style in inputs.styles:
         for key, label, _, changes in variants:
             variant = config.with_(**changes)
             with tempfile.TemporaryDirectory() as work:
                 result, _, _ = stylize_with_log(inputs.scene, inputs.cameras, style, variant, Path(work) / "log.jsonl")
-            measured = {"style": style_name, "seconds": result.seconds, **evaluator.measure(result.scene, style)}
+            measured = {
+                "style": style_name,
+                "seconds": result.seconds,
+                **evaluate_views(result.scene, base, style).mean,
+            }
             results[key].append(measured)
             print(
                 f"  {style_name} / {label}: {result.seconds:.1f} s, SW colour {measured['sw_colors']:.4f}, "

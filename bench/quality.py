@@ -21,8 +21,8 @@ Rows.
   renders of the 16 cameras (covered pixels) to the style, applied to every splat's colour.
 - ``preview`` and ``standard``: the stylizer's presets (the ``synth`` backend).
 
-Columns, from ``dresg_addon.evaluation.metrics``, means over the evaluation views, on the pixels the scene covers
-(alpha > 0.5):
+Columns, from ``dresg_addon.evaluation.views.evaluate_views`` (what ``dresg evaluate`` and ``dresg report`` give
+too), means over the evaluation views, on the pixels the scene covers (alpha > 0.5):
 
 - sliced-Wasserstein distance of 7x7 patches to the painting at three scales, the fit size (``SW patch``),
   half (``½``) and a quarter (``¼``): the novel views are rendered at twice the fit size and area-downsampled
@@ -94,7 +94,7 @@ TARGET_SHORT_RATIO = 1.2
 TARGET_CLOSED = 0.5
 TARGET_FIT_RATIO = 1.2
 TARGET_SECONDS = {"preview": 60.0, "standard": 300.0}
-SCALES = (("sw_patches", 2), ("sw_patches_half", 4), ("sw_patches_quarter", 8))  # downsampling of the 2x render
+SCALES = ("sw_patches", "sw_patches_half", "sw_patches_quarter")  # dresg_addon.evaluation.views.SCALES
 COLUMNS = (
     ("sw_patches", "SW patch ↓", 4),
     ("sw_patches_half", "½ ↓", 4),
@@ -159,72 +159,6 @@ def colour_transfer_scene(scene, cameras, style):
     return transfer_scene_colors(scene, stack, torch.stack([r.alpha for r in renders]), style_chw)
 
 
-def evaluate(base, stylized, cameras, style) -> tuple[dict, list]:
-    """The columns over ``cameras`` (covered pixels), and per camera the base render and the stylized one at 2x."""
-    import torch
-
-    from dresg_addon.evaluation import metrics
-    from dresg_addon.raster import render_scene
-
-    ours = [render_scene(stylized, camera) for camera in cameras]
-    theirs = [render_scene(base, camera) for camera in cameras]
-    rgb = [o.rgb.permute(2, 0, 1) for o in ours]
-    base_rgb = [t.rgb.permute(2, 0, 1) for t in theirs]
-    masks = [t.alpha for t in theirs]
-    painting = torch.from_numpy(style).permute(2, 0, 1).contiguous()
-    style_t = painting_at(painting, cameras[0].width, cameras[0].height)
-    scales, large = multiscale_patch_distances(stylized, base, cameras, painting)
-    pairs = list(zip(rgb, base_rgb, masks))
-    result = {
-        **scales,
-        "sw_colors": float(metrics.sliced_wasserstein_colors(rgb, style_t, masks=masks).mean()),
-        "ssim": float(torch.stack([metrics.ssim_per_image(a, b, mask=m) for a, b, m in pairs]).mean()),
-        "structure": float(
-            torch.stack([metrics.gradient_structure_similarity(a, b, mask=m) for a, b, m in pairs]).mean()
-        ),
-        "texture_kept": float(torch.stack([metrics.texture_kept(a, b, mask=m) for a, b, m in pairs]).mean()),
-        "shapes": float(torch.stack([metrics.shape_similarity(a, b, mask=m) for a, b, m in pairs]).mean()),
-    }
-    images = [o.rgb for o in ours]
-    depths, alphas = [o.depth for o in ours], [o.alpha for o in ours]
-    n = len(cameras)
-    for key, gap in (("short_rmse", 1), ("long_rmse", max(1, n // 2))):
-        result[key] = metrics.consistency_rmse(images, depths, alphas, cameras, gap).rmse
-    return result, [(t.rgb, image.permute(1, 2, 0)) for t, image in zip(theirs, large)]
-
-
-def painting_at(painting, width: int, height: int):
-    """The painting resampled so that its shorter side matches the shorter side of a width x height render."""
-    from dresg_addon.util.imageio import resize_image
-
-    h, w = painting.shape[1:]
-    factor = min(width, height) / min(w, h)
-    return resize_image(painting, max(1, round(w * factor)), max(1, round(h * factor)))
-
-
-def multiscale_patch_distances(stylized, base, cameras, painting) -> tuple[dict, list]:
-    """7x7 patch SW at the fit size, half and a quarter: renders at 2x area-downsampled by 2, 4 and 8 (coverage
-    from the unstylized scene, downsampled alike), the painting resampled to each size the same way. Also
-    returns the 2x renders [3, 2H, 2W] (the README's crops)."""
-    import torch.nn.functional as F
-
-    from dresg_addon.evaluation import metrics
-    from dresg_addon.raster import render_scene
-
-    images, masks = [], []
-    for camera in cameras:
-        big = camera.resized(2 * camera.width, 2 * camera.height)
-        images.append(render_scene(stylized, big).rgb.permute(2, 0, 1))
-        masks.append(render_scene(base, big).alpha)
-    out = {}
-    for key, factor in SCALES:
-        small = [F.avg_pool2d(image[None], factor)[0] for image in images]
-        alphas = [F.avg_pool2d(mask[None, None], factor)[0, 0] for mask in masks]
-        reference = painting_at(painting, small[0].shape[2], small[0].shape[1])
-        out[key] = float(metrics.sliced_wasserstein_patches(small, reference, masks=alphas).mean())
-    return out, images
-
-
 def fit_summary(log: list[dict]) -> dict:
     """The smallest share of a stage's target gap closed, and the largest fit residual / optimum ratio."""
     stages = [e for e in log if e.get("target_gap")]
@@ -241,6 +175,7 @@ def run_case(spec: dict) -> dict:
     """Stylize one (scene, style) with one row's method, then evaluate it on the novel views."""
     import numpy as np
 
+    from dresg_addon.evaluation.views import base_views, evaluate_views
     from dresg_addon.method.config import preset
     from dresg_addon.method.loop import stylize
     from dresg_addon.util.imageio import write_image
@@ -261,17 +196,21 @@ def run_case(spec: dict) -> dict:
     # The time a user waits: the diagnostic solves for the logged optimum left out.
     seconds = time.perf_counter() - started - sum(e.get("optimum_seconds", 0.0) for e in log)
     peak = harness.peak_rss_bytes()
-    measured, views = evaluate(scene, out, novel, style)
+    base = base_views(scene, novel)
+    measured = evaluate_views(out, base, style)
     if spec.get("figures"):
         folder = Path(spec["figures"])
-        for i, (before, after) in enumerate(views):
+        for i, (before, after) in enumerate(zip(base.renders.rgb, measured.renders_2x)):
             if i in spec.get("figure_views", (0,)):
-                write_image(folder / f"{spec['scene']}_{spec['style']}_{row}_v{i:02d}.png", np.ascontiguousarray(after))
+                name = f"{spec['scene']}_{spec['style']}_{row}_v{i:02d}.png"
+                write_image(folder / name, np.ascontiguousarray(after.permute(1, 2, 0)))
                 if row == "unstylized":
-                    write_image(folder / f"{spec['scene']}_v{i:02d}_1x.png", np.ascontiguousarray(before))
+                    write_image(
+                        folder / f"{spec['scene']}_v{i:02d}_1x.png", np.ascontiguousarray(before.permute(1, 2, 0))
+                    )
     stages = [e for e in log if e.get("stage") != "post"]
     return {
-        **measured,
+        **measured.mean,
         **fit_summary(log),
         "seconds": seconds,
         "peak_rss": peak,
@@ -359,7 +298,7 @@ def verdicts(results: dict, rows: list[str], quick: bool) -> list[str]:
         if row not in means or not ct or means[row]["sw_patches"] is None or ct.get("sw_patches") is None:
             continue
         m = means[row]
-        gains = [1.0 - m[key] / ct[key] for key, _ in SCALES]
+        gains = [1.0 - m[key] / ct[key] for key in SCALES]
         pairs = [c for c in results.values() if "error" not in c.get(row, {"error": 1}) and "colour-transfer" in c]
         wins = sum(c[row]["sw_patches_quarter"] < c["colour-transfer"]["sw_patches_quarter"] for c in pairs)
         needed = math.ceil(TARGET_COARSE_WINS * len(pairs))

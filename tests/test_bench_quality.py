@@ -10,6 +10,7 @@ import pytest
 import quality  # bench/, on pytest's pythonpath
 
 from dresg_addon.evaluation.stability import tiny_scene
+from dresg_addon.evaluation.views import base_views, evaluate_views
 from dresg_addon.scene.orbit import orbit_cameras
 
 NEW_COLUMNS = {"texture_kept": "texture kept ↓", "shapes": "shapes ↑"}
@@ -33,14 +34,16 @@ def test_quality_columns_include_texture_kept_and_shapes():
 def test_quality_evaluate_reports_every_measured_column(case):
     scene, cameras, style = case
     recoloured = replace(scene, sh_dc=scene.sh_dc[::-1].copy())
-    measured, views = quality.evaluate(scene, recoloured, cameras, style)
-    assert len(views) == len(cameras)
+    base = base_views(scene, cameras)
+    result = evaluate_views(recoloured, base, style)  # what quality.run_case measures
+    measured = result.mean
+    assert len(result.renders_2x) == len(cameras)
     fit_keys = {"min_closed", "fit_ratio"}  # from the stylize log, not from the views
     for key, _, _ in quality.COLUMNS:
         if key not in fit_keys:
             assert key in measured and measured[key] is not None and math.isfinite(measured[key]), key
     assert -1.0 <= measured["texture_kept"] < 0.99 and 0.0 < measured["shapes"] < 1.0
-    unstylized, _ = quality.evaluate(scene, scene, cameras, style)
+    unstylized = evaluate_views(scene, base, style).mean
     assert unstylized["texture_kept"] == pytest.approx(1.0, abs=1e-5)
     assert unstylized["shapes"] == pytest.approx(1.0, abs=1e-5)
     table = "\n".join(quality.table([("unstylized", {**unstylized, "seconds": 0.0, "peak_rss": 1e9})]))

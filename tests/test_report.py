@@ -30,7 +30,7 @@ def figure_data(rgb_error=1e-6, loss=None, residual=0.02, metric=0.05) -> dict:
     ]  # fmt: skip
     raster_rows[0]["rgb_error"] = 0.0  # the exact default: drawn at the floor
     raster_rows[1]["rgb_error"] = rgb_error
-    keys = ("sw_colors", "sw_patches", "ssim", "gs", "short_rmse", "long_rmse")
+    keys = ("sw_colors", "sw_patches", "ssim", "structure", "short_rmse", "long_rmse")
     runs = [
         {"label": label, "group": group, "seconds": seconds, "config": {"stages": stages}, **dict.fromkeys(keys, value)}
         for label, group, seconds, stages, value in (
@@ -106,13 +106,8 @@ def test_non_finite_values_never_reach_the_figures(tmp_path):
 
 
 def test_raster_figure_follows_the_shared_speed_knobs():
-    from dresg_addon.evaluation.report import (
-        ERROR_FLOOR,
-        QUICK_RASTER_KNOBS,
-        _knob_value_label,
-        plot_raster_error,
-        raster_table,
-    )
+    from dresg_addon.evaluation.report import ERROR_FLOOR, _knob_value_label, plot_raster_error, raster_table
+    from dresg_addon.evaluation.report_measure import QUICK_RASTER_KNOBS
     from dresg_addon.raster.knobs import SPEED_KNOBS
 
     assert set(QUICK_RASTER_KNOBS) <= set(SPEED_KNOBS) and QUICK_RASTER_KNOBS[0][1] is None
@@ -162,7 +157,7 @@ def test_a_failed_figure_write_is_a_write_error(tmp_path):
 
 
 def test_window_subset_keeps_every_gaussian_that_reaches_the_window():
-    from dresg_addon.evaluation.report import window_subset
+    from dresg_addon.evaluation.report_measure import window_subset
     from dresg_addon.evaluation.stability import tiny_camera, tiny_scene
     from dresg_addon.raster.reference import reference_render
 
@@ -181,29 +176,6 @@ def test_window_subset_keeps_every_gaussian_that_reaches_the_window():
         part.means, part.quats, part.log_scales, part.opacity_logits, colors[subset], camera, window=window
     )
     np.testing.assert_array_equal(cut["rgb"], full["rgb"])
-
-
-def test_evaluator_fast_path_matches_full_renders():
-    from dataclasses import replace
-
-    from dresg_addon.evaluation.report import ViewEvaluator
-    from dresg_addon.evaluation.stability import tiny_cameras, tiny_scene
-
-    base = tiny_scene(40)
-    style = np.random.default_rng(0).uniform(0, 1, (16, 16, 3)).astype(np.float32)
-    evaluator = ViewEvaluator(base, tiny_cameras())
-    recoloured = replace(base, sh_dc=base.sh_dc[::-1].copy())
-    moved = replace(recoloured, means=recoloured.means + np.float32(1e-7))  # forces full renders
-    fast, full = evaluator._views(recoloured), evaluator._views(moved)
-    for (a, _, _), (b, _, _) in zip(fast, full):
-        np.testing.assert_allclose(a.numpy(), b.numpy(), atol=1e-4)
-    unstylized = evaluator.measure(base, style)
-    assert unstylized["ssim"] == pytest.approx(1.0) and unstylized["gs"] == pytest.approx(1.0)
-    assert unstylized["texture_kept"] == pytest.approx(1.0, abs=1e-5) and unstylized["shapes"] == pytest.approx(1.0)
-    assert 0.0 <= unstylized["short_rmse"] < 0.1  # the exact warp's resampling floor
-    m = evaluator.measure(recoloured, style)
-    assert m["ssim"] < 1.0 and all(v is None or np.isfinite(v) for v in m.values())
-    assert -1.0 <= m["texture_kept"] < 1.0 and 0.0 < m["shapes"] < 1.0
 
 
 def test_report_command_writes_four_sections_and_plots(tmp_path):
@@ -276,7 +248,7 @@ def test_report_without_matplotlib_is_written_without_figures_and_says_why(tmp_p
     out = tmp_path / "report"
     code = main(
         ["report", "--quick", "--scene", str(tmp_path / "tiny.ply"), "--styles", str(tmp_path / "style.png"),
-         "--out", str(out), "--width", "32", "--height", "24", "--views", "2", "--presets", "preview",
+         "--out", str(out), "--width", "40", "--height", "28", "--views", "2", "--presets", "preview",
          "--stage-counts", "", "--no-stability"]
     )  # fmt: skip
     assert code == 0
@@ -290,3 +262,31 @@ def test_report_without_matplotlib_is_written_without_figures_and_says_why(tmp_p
         assert heading in text
     assert "![" not in text and not list(out.glob("*.png"))  # no links to figures that are not there
     assert json.loads((out / "report.json").read_text())["convergence"]["steps"]  # the data to draw them later
+
+
+def test_report_inputs_come_from_the_users_scene_style_and_cameras(tmp_path):
+    from dresg_addon.evaluation.report_measure import ReportOptions, load_inputs
+    from dresg_addon.evaluation.stability import tiny_scene
+    from dresg_addon.scene.camera_io import write_cameras_json
+    from dresg_addon.scene.io import write_scene
+    from dresg_addon.scene.orbit import orbit_cameras
+    from dresg_addon.util.imageio import write_image
+
+    scene = tiny_scene(50)
+    write_scene(scene, tmp_path / "tiny.ply")
+    write_image(tmp_path / "painting.png", np.full((24, 32, 3), 0.5, np.float32))
+    path = orbit_cameras(scene, 6, width=64, height=48)
+    write_cameras_json(tmp_path / "cameras.json", path)
+    options = ReportOptions(
+        scene=str(tmp_path / "tiny.ply"),
+        styles=(str(tmp_path / "painting.png"),),
+        cameras=str(tmp_path / "cameras.json"),
+    )
+    inputs = load_inputs(options.resolved())
+    assert len(inputs.scene) == 50 and [name for name, _ in inputs.styles] == ["painting"]
+    assert [c.name for c in inputs.cameras] == [path[i].name for i in (0, 2, 4)]  # every other camera stylizes
+    assert [c.name for c in inputs.eval_cameras] == [path[i].name for i in (1, 3, 5)]  # the rest are held out
+    assert (inputs.cameras[0].width, inputs.cameras[0].height) == (224, 168)  # the report's width, aspect kept
+    assert (inputs.raster_camera.width, inputs.raster_camera.height) == (448, 336)
+    demo = load_inputs(ReportOptions(quick=True).resolved())  # nothing given: the built-in demo, no shared data
+    assert demo.scene_label.startswith("built-in demo") and [n for n, _ in demo.styles] == ["demo painting"]

@@ -1,22 +1,25 @@
 """``python -m dresg_addon evaluate STYLIZED --base BASE --style IMG``: style, content, consistency, efficiency.
 
-Both scenes are rendered from each camera, in order (the order of the camera file, or around the
-orbit ring: that order is the path along which consistency is measured). Per view:
+Both scenes are rendered from each camera, in order (the order of the camera file, or around the orbit ring:
+that order is the path along which consistency is measured), and measured by
+:func:`dresg_addon.evaluation.views.evaluate_views`, the evaluator of ``dresg report`` and ``bench/quality.py``
+too, so the three give the same numbers for the same scenes, painting and cameras. Per view, on the pixels the
+base render covers:
 
-- style: sliced Wasserstein distance of colours and of 7 x 7 patches to the style image, which is
-  first resized (aspect kept) so that its shorter side matches the first camera's;
-- content: SSIM and gradient-structure similarity to the base render from the same camera;
-- texture and forms, on the pixels the base render covers: ``texture_kept``, the correlation of the
-  luminance high-pass (sigma 2 px) with the base render's, 4 px inside the silhouette (1: the scene's own
-  fine texture is all still there, about 0: replaced, e.g. by the painting's marks), and ``shapes``, SSIM of
-  the luminance blurred by a Gaussian of sigma 3 px (1: the same forms);
+- style: sliced Wasserstein distance of 7 x 7 patches to the painting at the cameras' size, half and a quarter
+  (renders at twice the size area-downsampled by 2, 4 and 8, the painting resampled to each size, its shorter
+  side to the render's), and of the colours;
+- content: SSIM and gradient structure to the base render from the same camera; ``texture_kept``, the
+  correlation of the luminance high-pass (sigma 2 px) with the base render's, 4 px inside the silhouette (1:
+  the scene's own fine texture is all still there, about 0: replaced, e.g. by the painting's marks), and
+  ``shapes``, SSIM of the luminance blurred by a Gaussian of sigma 3 px (1: the same forms);
 - optional CLIP-S (``--clip``) and DINO-C (``--dino``) with local transformers weights.
 
 Along the path: the stylized render of view i warped into view i + gap with the stylized scene's
 rendered depth and the known poses, masked RMSE for gap 1 (short-term) and N // 2 (long-term); the
 same for the base scene, as the floor that the rasterizer and view-dependent colour alone give.
 Efficiency: render FPS and peak memory of the stylized scene, and, with ``--log``, the optimisation
-time and peak memory from the stylizer's log. All renders are clipped to [0, 1] before measuring.
+time and peak memory from the stylizer's log. Renders are measured as the rasterizer gives them (not clipped).
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import json
 import math
 from pathlib import Path
 
-from ..util.errors import ConfigError, NumericalError
+from ..util.errors import ConfigError
 from ._common import (
     ORBIT_SIZE,
     add_background_option,
@@ -42,22 +45,13 @@ from ._common import (
 
 NAME = "evaluate"
 HELP = (
-    "Measure a stylized scene against its base scene and style image: style distance, content similarity, "
-    "cross-view consistency, render speed (and CLIP-S / DINO-C with local weights)."
+    "Measure a stylized scene against its base scene and style image, as the report and the quality benchmark "
+    "do: style distance (patches at three scales, colours), content similarity, texture kept, shapes, cross-view "
+    "consistency, render speed (and CLIP-S / DINO-C with local weights)."
 )
 
 DEFAULT_ORBIT = 8
-PER_VIEW_KEYS = (
-    "sw_colors",
-    "sw_patches",
-    "ssim",
-    "gradient_structure",
-    "texture_kept",
-    "shapes",
-    "clip_s",
-    "dino_c",
-    "alpha_coverage",
-)
+EXTRA_KEYS = ("clip_s", "dino_c", "alpha_coverage")  # per view, besides evaluate_views's
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -93,7 +87,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--color-samples", type=int, default=65536, metavar="N", help="pixels drawn per image (fixed positions)"
     )
     parser.add_argument(
-        "--patch", type=int, default=7, metavar="N", help="patch size of the patch sliced Wasserstein distance"
+        "--patch",
+        type=int,
+        default=7,
+        metavar="N",
+        help="patch size of the patch sliced Wasserstein distance (cameras need 4 N pixels a side: the quarter scale)",
     )
     parser.add_argument(
         "--patch-samples", type=int, default=16384, metavar="N", help="patches drawn per image (fixed positions)"
@@ -143,30 +141,6 @@ def _check_options(args: argparse.Namespace) -> tuple[float, float]:
     return tolerance, threshold
 
 
-def _render_all(scene, cameras, settings, device, label: str):
-    """Per camera: (rgb [3, H, W] clipped to [0, 1], alpha [H, W], depth [H, W]) on the CPU, float32."""
-    from ..raster import render_scene
-
-    views = []
-    for camera in cameras:
-        out = render_scene(scene, camera, settings, device=device)
-        if not bool(out.rgb.isfinite().all()):
-            raise NumericalError(f"{label}: the render of camera {camera.name or len(views)} has non-finite values")
-        rgb = out.rgb.float().clamp(0.0, 1.0).permute(2, 0, 1).cpu()
-        views.append((rgb, out.alpha.float().cpu(), out.depth.float().cpu()))
-    return views
-
-
-def _style_for(style, camera):
-    """The style image resized (aspect kept) so its shorter side equals the camera's."""
-    from ..util.imageio import resize_image
-
-    _, h, w = style.shape
-    factor = min(camera.width, camera.height) / min(w, h)
-    size = (max(1, round(w * factor)), max(1, round(h * factor)))
-    return style if size == (w, h) else resize_image(style, *size)
-
-
 def _mean(values) -> float | None:
     present = [v for v in values if v is not None]
     return sum(present) / len(present) if present else None
@@ -175,6 +149,7 @@ def _mean(values) -> float | None:
 def evaluate(args: argparse.Namespace) -> dict:
     """Everything the command measures, as a JSON-ready dict (no NaN: missing values are None)."""
     from ..evaluation import metrics
+    from ..evaluation.views import base_views, check_camera_sizes, evaluate_views, path_consistency
     from ..raster import RasterSettings
     from ..util.imageio import STYLE_MAX_SIDE, read_rgb, to_tensor
 
@@ -189,73 +164,62 @@ def evaluate(args: argparse.Namespace) -> dict:
         for kind, path in (("clip", args.clip), ("dino", args.dino)):
             if path:
                 check_model_folder(path, kind)
-    style = to_tensor(read_rgb(args.style, max_side=STYLE_MAX_SIDE))
+    style = read_rgb(args.style, max_side=STYLE_MAX_SIDE)
     stylized = read_scene_noting(args.stylized, args.drop_invalid, "stylized scene")
     base = read_scene_noting(args.base, args.drop_invalid, "base scene")
     if cameras is None:
         cameras = orbit_for(args, base, DEFAULT_ORBIT)
-    small = [c for c in cameras if min(c.width, c.height) < args.patch]
-    if small:
-        raise ConfigError(f"camera {small[0].name!r} is {small[0].width}x{small[0].height}, smaller than a patch")
+    check_camera_sizes(cameras, args.patch)
     settings = RasterSettings(near=args.near, background=background)
 
     # Benchmark first, while the process holds little besides the two scenes.
     benchmark = None
     if args.fps_repeats:
         benchmark = metrics.measure_render(stylized, cameras, settings, args.fps_repeats, device).as_dict()
-    ours = _render_all(stylized, cameras, settings, device, "stylized scene")
-    theirs = _render_all(base, cameras, settings, device, "base scene")
-    rgb = [v[0] for v in ours]
-    base_rgb = [v[0] for v in theirs]
-
-    style_small = _style_for(style, cameras[0])
-    sw_colors = metrics.sliced_wasserstein_colors(rgb, style_small, args.projections, args.seed, args.color_samples)
-    sw_patches = metrics.sliced_wasserstein_patches(
-        rgb, style_small, args.patch, args.projections, args.seed, args.patch_samples
+    base_renders = base_views(base, cameras, settings, device)
+    measured = evaluate_views(
+        stylized,
+        base_renders,
+        style,
+        settings,
+        device,
+        patch=args.patch,
+        projections=args.projections,
+        seed=args.seed,
+        color_samples=args.color_samples,
+        patch_samples=args.patch_samples,
+        depth_tolerance=tolerance,
+        alpha_threshold=threshold,
     )
-    ssim = [float(metrics.ssim_per_image(a, b)) for a, b in zip(rgb, base_rgb)]
-    structure = [float(metrics.gradient_structure_similarity(a, b)) for a, b in zip(rgb, base_rgb)]
-    covered = [v[1] for v in theirs]  # the base render's alpha: the pixels the scene covers
-    texture = [float(metrics.texture_kept(a, b, mask=m)) for a, b, m in zip(rgb, base_rgb, covered)]
-    shapes = [float(metrics.shape_similarity(a, b, mask=m)) for a, b, m in zip(rgb, base_rgb, covered)]
-    clip_s = dino_c = [None] * len(cameras)
+    n = len(cameras)
+    extra = {key: [None] * n for key in EXTRA_KEYS}
+    extra["alpha_coverage"] = [float((alpha > threshold).float().mean()) for alpha in measured.renders.alpha]
+    clipped = [rgb.clamp(0.0, 1.0) for rgb in measured.renders.rgb]  # the models take images in [0, 1]
     if args.clip:
         from ..evaluation.clip_dino import clip_style_score, load_clip
 
-        clip_s = clip_style_score(load_clip(args.clip, device), rgb, style).tolist()
+        extra["clip_s"] = clip_style_score(load_clip(args.clip, device), clipped, to_tensor(style)).tolist()
     if args.dino:
         from ..evaluation.clip_dino import dino_content_score, load_dino
 
-        dino_c = dino_content_score(load_dino(args.dino, device), rgb, base_rgb).tolist()
+        base_clipped = [rgb.clamp(0.0, 1.0) for rgb in base_renders.renders.rgb]
+        extra["dino_c"] = dino_content_score(load_dino(args.dino, device), clipped, base_clipped).tolist()
 
-    per_view = []
-    for i, camera in enumerate(cameras):
-        per_view.append(
-            {
-                "name": camera.name or f"view_{i:03d}",
-                "width": camera.width,
-                "height": camera.height,
-                "sw_colors": float(sw_colors[i]),
-                "sw_patches": float(sw_patches[i]),
-                "ssim": ssim[i],
-                "gradient_structure": structure[i],
-                "texture_kept": texture[i],
-                "shapes": shapes[i],
-                "clip_s": clip_s[i],
-                "dino_c": dino_c[i],
-                "alpha_coverage": float((ours[i][1] > threshold).float().mean()),
-            }
-        )
-
-    n = len(cameras)
-    consistency = {}
-    for label, views in (("stylized", ours), ("base", theirs)):
-        images = [v[0].permute(1, 2, 0) for v in views]
-        alphas, depths = [v[1] for v in views], [v[2] for v in views]
-        consistency[label] = {
-            term: metrics.consistency_rmse(images, depths, alphas, cameras, gap, tolerance, threshold).as_dict()
-            for term, gap in (("short_term", 1), ("long_term", max(1, n // 2)))
+    per_view = [
+        {
+            "name": camera.name or f"view_{i:03d}",
+            "width": camera.width,
+            "height": camera.height,
+            **{key: values[i] for key, values in measured.per_view.items()},
+            **{key: values[i] for key, values in extra.items()},
         }
+        for i, camera in enumerate(cameras)
+    ]
+    floor = path_consistency(base_renders.renders, cameras, tolerance, threshold)
+    consistency = {
+        label: {"short_term": short.as_dict(), "long_term": long.as_dict()}
+        for label, (short, long) in (("stylized", (measured.short, measured.long)), ("base", floor))
+    }
 
     return {
         "stylized": str(args.stylized),
@@ -272,9 +236,10 @@ def evaluate(args: argparse.Namespace) -> dict:
             "seed": args.seed,
             "depth_tolerance": tolerance,
             "alpha_threshold": threshold,
-            "style_size": [int(style_small.shape[2]), int(style_small.shape[1])],
+            "style_size": list(measured.style_size),
         },
-        "mean": {key: _mean(view[key] for view in per_view) for key in PER_VIEW_KEYS},
+        # The metrics' means as evaluate_views takes them (the quality bench's numbers), then the extras'.
+        "mean": {**measured.mean, **{key: _mean(values) for key, values in extra.items()}},
         "per_view": per_view,
         "consistency": consistency,
         "efficiency": {
@@ -292,10 +257,12 @@ def _fmt(value, digits: int = 4) -> str:
 def format_report(report: dict) -> str:
     """The report as a readable table."""
     columns = (
-        ("SW col", "sw_colors"),
         ("SW patch", "sw_patches"),
+        ("1/2", "sw_patches_half"),
+        ("1/4", "sw_patches_quarter"),
+        ("SW col", "sw_colors"),
         ("SSIM", "ssim"),
-        ("GS", "gradient_structure"),
+        ("GS", "structure"),
         ("texture kept", "texture_kept"),
         ("shapes", "shapes"),
         ("CLIP-S", "clip_s"),
@@ -314,7 +281,13 @@ def format_report(report: dict) -> str:
     lines.append("-" * len(lines[0]))
     lines.append(row_of("mean", [report["mean"][key] for _, key in columns]))
     lines.append(
-        "lower is better: SW col, SW patch, texture kept (less of the base's fine texture); "
+        "SW patch, 1/2, 1/4: 7x7 patch sliced-Wasserstein distance to the painting at the cameras' size, half and a "
+        "quarter; SW col: the same on colours; SSIM, GS (gradient structure), shapes (SSIM of the forms, sigma 3 px) "
+        "to the base render; texture kept: correlation of the fine texture (sigma 2 px) with the base render's; "
+        "all on the pixels the base render covers, as dresg report and the quality benchmark measure them"
+    )
+    lines.append(
+        "lower is better: SW patch, 1/2, 1/4, SW col, texture kept (less of the base's fine texture); "
         "higher is better: SSIM, GS, shapes, CLIP-S, DINO-C"
     )
     lines.append("consistency, masked RMSE of the warped render (lower is better; coverage = valid pixels):")

@@ -1,0 +1,208 @@
+"""Novel-view evaluation: the one definition of the numbers that ``dresg evaluate``, ``dresg report`` and
+``bench/quality.py`` give.
+
+A stylized scene and its base (unstylized) scene are rendered from the same cameras, in path order. Every
+value is a mean over the views, on the pixels the base render covers (alpha > ``metrics.ALPHA_THRESHOLD``);
+renders are the rasterizer's, not clipped.
+
+==========================  =======  ===========================================================================
+key                         better   what it is
+==========================  =======  ===========================================================================
+``sw_patches``              lower    sliced-Wasserstein distance of 7x7 patches to the painting at the cameras'
+                                     size: a render at twice the size, area-downsampled by 2
+``sw_patches_half``         lower    the same, downsampled by 4 (half the size: strokes)
+``sw_patches_quarter``      lower    the same, downsampled by 8 (a quarter: flat areas, what a person takes in)
+``sw_colors``               lower    sliced-Wasserstein distance of the colours to the painting
+``ssim``                    higher   SSIM to the base render of the same camera
+``structure``               higher   gradient-structure similarity to the base render
+``texture_kept``            lower    correlation of the luminance high-pass with the base render's, 4 px inside
+                                     the silhouette (1: the capture's fine texture all kept; about 0: replaced)
+``shapes``                  higher   SSIM of the luminance blurred by a Gaussian of sigma 3 px (1: same forms)
+``short_rmse``              lower    view i warped into view i + 1 with the rendered depth, masked RMSE
+``long_rmse``               lower    the same into view i + N // 2 (opposite views on a ring)
+==========================  =======  ===========================================================================
+
+The painting is resampled to each size it is compared at by :func:`painting_at` (its shorter side to the
+render's), with the coverage of the 2x renders area-downsampled alike, so a 7x7 window sees the same share
+of the painting at every scale.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..scene.camera import Camera
+from ..scene.gaussians import GaussianScene
+from ..util.errors import ConfigError, NumericalError
+from . import metrics
+
+SCALES = (("sw_patches", 2), ("sw_patches_half", 4), ("sw_patches_quarter", 8))  # downsampling of the 2x render
+PER_VIEW_KEYS = ("sw_colors", "ssim", "structure", "texture_kept", "shapes")
+KEYS = (*(key for key, _ in SCALES), *PER_VIEW_KEYS, "short_rmse", "long_rmse")
+
+
+@dataclass(frozen=True)
+class Renders:
+    """One scene rendered from each camera: rgb [3, H, W], alpha [H, W], depth [H, W], on the CPU."""
+
+    rgb: list[torch.Tensor]
+    alpha: list[torch.Tensor]
+    depth: list[torch.Tensor]
+
+
+@dataclass(frozen=True)
+class BaseViews:
+    """What the base scene gives every evaluation: its renders and the coverage of its 2x renders [2H, 2W]."""
+
+    cameras: list[Camera]
+    renders: Renders
+    alpha_2x: list[torch.Tensor]
+
+
+@dataclass
+class ViewEvaluation:
+    """The measurements of one stylized scene; ``mean`` holds every key of :data:`KEYS`."""
+
+    mean: dict[str, float | None]
+    per_view: dict[str, list[float]]  # the keys of SCALES and PER_VIEW_KEYS, one value per camera
+    short: metrics.ConsistencyResult
+    long: metrics.ConsistencyResult
+    renders: Renders  # the stylized scene at the cameras' size
+    renders_2x: list[torch.Tensor]  # the stylized scene at twice the size [3, 2H, 2W] (figures)
+    style_size: tuple[int, int]  # (width, height) of the painting the colours were compared with
+
+
+def _render(scene: GaussianScene, camera: Camera, settings, device, label: str):
+    from ..raster import RasterSettings, render_scene
+
+    out = render_scene(scene, camera, settings or RasterSettings(), device=device)
+    if not bool(out.rgb.isfinite().all()):
+        raise NumericalError(f"{label}: the render of camera {camera.name or '?'} has non-finite values")
+    return out
+
+
+def render_views(
+    scene: GaussianScene, cameras: Sequence[Camera], settings=None, device="cpu", label="scene"
+) -> Renders:
+    """``scene`` from each of ``cameras``; NumericalError when a render has a non-finite value."""
+    outs = [_render(scene, camera, settings, device, label) for camera in cameras]
+    return Renders(
+        [o.rgb.float().permute(2, 0, 1).cpu() for o in outs],
+        [o.alpha.float().cpu() for o in outs],
+        [o.depth.float().cpu() for o in outs],
+    )
+
+
+def _twice(camera: Camera) -> Camera:
+    return camera.resized(2 * camera.width, 2 * camera.height)
+
+
+def base_views(base: GaussianScene, cameras: Sequence[Camera], settings=None, device="cpu") -> BaseViews:
+    """Render the base scene once for any number of :func:`evaluate_views` calls on the same cameras."""
+    cameras = list(cameras)
+    alpha_2x = [_render(base, _twice(c), settings, device, "base scene").alpha.float().cpu() for c in cameras]
+    return BaseViews(cameras, render_views(base, cameras, settings, device, "base scene"), alpha_2x)
+
+
+def check_camera_sizes(cameras: Sequence[Camera], patch: int = 7) -> None:
+    """ConfigError unless every camera, at a quarter of its size (the coarsest patch scale), holds a patch."""
+    small = [c for c in cameras if min(c.width, c.height) // 4 < patch]
+    if small:
+        c = small[0]
+        raise ConfigError(
+            f"camera {c.name or '?'} is {c.width}x{c.height}: at a quarter of that size (the coarsest style scale) "
+            f"it is smaller than a patch ({patch} px); use at least {4 * patch} pixels a side"
+        )
+
+
+def painting_at(painting: torch.Tensor, width: int, height: int) -> torch.Tensor:  # [3, h, w] -> [3, h', w']
+    """The painting resampled (aspect kept) so that its shorter side matches the shorter side of a width x
+    height render."""
+    from ..util.imageio import resize_image
+
+    h, w = painting.shape[1:]
+    factor = min(width, height) / min(w, h)
+    return resize_image(painting, max(1, round(w * factor)), max(1, round(h * factor)))
+
+
+def path_consistency(
+    renders: Renders,
+    cameras: Sequence[Camera],
+    depth_tolerance: float = metrics.DEPTH_TOLERANCE,
+    alpha_threshold: float = metrics.ALPHA_THRESHOLD,
+) -> tuple[metrics.ConsistencyResult, metrics.ConsistencyResult]:
+    """Short- (gap 1) and long-range (gap N // 2) :func:`~.metrics.consistency_rmse` along the camera path."""
+    images = [rgb.permute(1, 2, 0) for rgb in renders.rgb]
+    n = len(cameras)
+    return tuple(
+        metrics.consistency_rmse(
+            images, renders.depth, renders.alpha, list(cameras), gap, depth_tolerance, alpha_threshold
+        )
+        for gap in (1, max(1, n // 2))
+    )
+
+
+def evaluate_views(
+    stylized: GaussianScene,
+    base: BaseViews,
+    painting: np.ndarray,  # [H, W, 3]
+    settings=None,
+    device="cpu",
+    *,
+    patch: int = 7,
+    projections: int = 128,
+    seed: int = 0,
+    color_samples: int = 65536,
+    patch_samples: int = 16384,
+    depth_tolerance: float = metrics.DEPTH_TOLERANCE,
+    alpha_threshold: float = metrics.ALPHA_THRESHOLD,
+) -> ViewEvaluation:
+    """Measure ``stylized`` against the painting and the base scene on ``base.cameras`` (the keys of :data:`KEYS`).
+
+    ``settings`` (RasterSettings) and ``device`` are the rasterizer's; ``depth_tolerance`` and
+    ``alpha_threshold`` are the consistency warp's occlusion and opacity tests; the rest are the sliced
+    Wasserstein distances' (:mod:`dresg_addon.method.style_distance`).
+    """
+    cameras = base.cameras
+    check_camera_sizes(cameras, patch)
+    ours = render_views(stylized, cameras, settings, device, "stylized scene")
+    masks = base.renders.alpha
+    painting_t = torch.from_numpy(painting).permute(2, 0, 1).contiguous()
+    style = painting_at(painting_t, cameras[0].width, cameras[0].height)
+    large = [_render(stylized, _twice(c), settings, device, "stylized scene").rgb for c in cameras]
+    large = [image.float().permute(2, 0, 1).cpu() for image in large]
+    per_view = {}
+    for key, factor in SCALES:
+        small = [F.avg_pool2d(image[None], factor)[0] for image in large]
+        alphas = [F.avg_pool2d(mask[None, None], factor)[0, 0] for mask in base.alpha_2x]
+        reference = painting_at(painting_t, small[0].shape[2], small[0].shape[1])
+        per_view[key] = metrics.sliced_wasserstein_patches(
+            small, reference, patch, projections, seed, patch_samples, masks=alphas
+        )
+    per_view["sw_colors"] = metrics.sliced_wasserstein_colors(
+        ours.rgb, style, projections, seed, color_samples, masks=masks
+    )
+    pairs = list(zip(ours.rgb, base.renders.rgb, masks))
+    for key, measure in (
+        ("ssim", metrics.ssim_per_image),
+        ("structure", metrics.gradient_structure_similarity),
+        ("texture_kept", metrics.texture_kept),
+        ("shapes", metrics.shape_similarity),
+    ):
+        per_view[key] = torch.stack([measure(a, b, mask=m) for a, b, m in pairs])
+    short, long = path_consistency(ours, cameras, depth_tolerance, alpha_threshold)
+    mean = {key: float(per_view[key].mean()) for key in KEYS[:-2]}
+    return ViewEvaluation(
+        {**mean, "short_rmse": short.rmse, "long_rmse": long.rmse},
+        {key: [float(v) for v in values] for key, values in per_view.items()},
+        short,
+        long,
+        ours,
+        large,
+        (int(style.shape[2]), int(style.shape[1])),
+    )

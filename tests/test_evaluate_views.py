@@ -1,0 +1,71 @@
+"""One novel-view evaluator: ``dresg evaluate``, the report and the quality bench give the same numbers."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import quality  # bench/, on pytest's pythonpath
+
+from dresg_addon import cli
+from dresg_addon.evaluation import report_measure
+from dresg_addon.evaluation.stability import tiny_cameras, tiny_scene
+from dresg_addon.evaluation.views import KEYS, base_views, evaluate_views
+from dresg_addon.scene.camera_io import write_cameras_json
+from dresg_addon.scene.io import write_scene
+from dresg_addon.util.errors import ConfigError
+from dresg_addon.util.imageio import write_image
+
+CASE = {"scene": "demo", "style": "demo", "row": "colour-transfer", "views": 4, "width": 56, "height": 40}
+
+
+def test_evaluate_the_report_and_the_quality_bench_give_identical_numbers(tmp_path, monkeypatch, capsys):
+    scene, train, novel, style = quality.load_case(CASE)
+    stylized = quality.colour_transfer_scene(scene, train, style)
+    bench = quality.run_case(CASE)  # the bench's own path: its cameras, painting and colour transfer
+
+    # The report, its stylization replaced by the colour transfer (the evaluation is what is compared).
+    def stylize_with_log(*_):
+        return SimpleNamespace(scene=stylized, seconds=1.0, selection=SimpleNamespace(indices=[0])), [], []
+
+    monkeypatch.setattr(report_measure, "stylize_with_log", stylize_with_log)
+    inputs = report_measure.ReportInputs(scene, "demo", train, novel, None, [("demo", style)])
+    options = report_measure.ReportOptions(quick=True, presets=("preview",), stage_counts=()).resolved()
+    records, _ = report_measure.run_stylizations(inputs, options, tmp_path, say=lambda _: None)
+
+    write_scene(scene, tmp_path / "base.ply")
+    write_scene(stylized, tmp_path / "stylized.ply")
+    write_image(tmp_path / "style.exr", style)  # float: the painting read back bit for bit
+    write_cameras_json(tmp_path / "cameras.json", novel)
+    args = ["evaluate", str(tmp_path / "stylized.ply"), "--base", str(tmp_path / "base.ply")]
+    args += ["--style", str(tmp_path / "style.exr"), "--cameras", str(tmp_path / "cameras.json")]
+    assert cli.main([*args, "--fps-repeats", "0", "--json", str(tmp_path / "out.json")]) == 0
+    capsys.readouterr()
+    command = json.loads((tmp_path / "out.json").read_text())["mean"]
+
+    assert [records[0].metrics[key] for key in KEYS] == [bench[key] for key in KEYS]
+    assert [command[key] for key in KEYS] == [bench[key] for key in KEYS]
+    assert 0.0 < bench["ssim"] < 1.0 and bench["sw_patches_quarter"] > 0.0
+
+
+def test_unstylized_scene_measures_as_its_own_base():
+    base = tiny_scene(40)
+    cameras = [c.resized(48, 32) for c in tiny_cameras()]
+    style = np.random.default_rng(0).uniform(0, 1, (16, 16, 3)).astype(np.float32)
+    views = base_views(base, cameras)
+    unstylized = evaluate_views(base, views, style).mean
+    assert list(unstylized) == list(KEYS)
+    assert unstylized["ssim"] == pytest.approx(1.0) and unstylized["structure"] == pytest.approx(1.0)
+    assert unstylized["texture_kept"] == pytest.approx(1.0, abs=1e-5) and unstylized["shapes"] == pytest.approx(1.0)
+    assert 0.0 <= unstylized["short_rmse"] < 0.1  # the exact warp's resampling floor
+    recoloured = replace(base, sh_dc=base.sh_dc[::-1].copy())
+    m = evaluate_views(recoloured, views, style)
+    assert m.mean["ssim"] < 1.0 and all(v is None or np.isfinite(v) for v in m.mean.values())
+    assert -1.0 <= m.mean["texture_kept"] < 1.0 and 0.0 < m.mean["shapes"] < 1.0
+    assert [tuple(image.shape) for image in m.renders_2x] == [(3, 64, 96)] * 2
+    assert m.style_size == (32, 32)  # the square painting's side to the cameras' shorter side
+    with pytest.raises(ConfigError, match="smaller than a patch"):
+        evaluate_views(base, views, style, patch=9)  # 32 px / 4 = 8 px at the coarsest scale
