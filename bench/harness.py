@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""What the benchmark scripts share: one fresh interpreter per case, and the machine header."""
+"""What the benchmark scripts share: one fresh interpreter per case, its thread policy, and the machine header."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from dresg_addon.util.machine import cpu_model, peak_rss_mb, usable_cores
+from dresg_addon.util.threads import ThreadAdapter, apply_thread_policy
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -30,6 +31,7 @@ def peak_rss_bytes() -> int:
 
 
 THREAD_SETTINGS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
+THREADS = ThreadAdapter()  # a worker's torch threads: the benches adapt them between timed runs and steps
 LOADS = {  # what else runs on the machine while a loaded case is measured
     "python": "while True: pass",  # one core taken by a process that never waits
     # another torch job doing small ops with torch's default threads, which spin between ops
@@ -37,15 +39,15 @@ LOADS = {  # what else runs on the machine while a loaded case is measured
 }
 
 
-def fresh_environment() -> dict:
-    """This environment without the thread settings the engine chose for this process (a worker chooses its own)."""
+def default_environment() -> dict:
+    """This environment without OpenMP wait settings: a load process runs as torch does by default."""
     return {key: value for key, value in os.environ.items() if key not in THREAD_SETTINGS}
 
 
 @contextmanager
 def background_load(kind: str, settle_s: float = 2.0):
     """Run one :data:`LOADS` process for the duration of the block (started and stopped here)."""
-    process = subprocess.Popen([sys.executable, "-c", LOADS[kind]], env=fresh_environment())
+    process = subprocess.Popen([sys.executable, "-c", LOADS[kind]], env=default_environment())
     try:
         time.sleep(settle_s)  # let it start (torch takes a second to import)
         yield
@@ -60,7 +62,6 @@ def call_worker(script: str, spec: dict) -> dict:
         [sys.executable, str(Path(script).resolve()), "--worker", json.dumps(spec)],
         capture_output=True,
         text=True,
-        env=fresh_environment(),
     )
     if done.returncode != 0:
         tail = (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
@@ -69,7 +70,12 @@ def call_worker(script: str, spec: dict) -> dict:
 
 
 def run_worker(payload: str, workers: dict) -> int:
-    """The worker side of :func:`call_worker`: run ``workers[spec['kind']]`` and print its JSON result."""
+    """The worker side of :func:`call_worker`: run ``workers[spec['kind']]`` and print its JSON result.
+
+    The worker owns its process: the thread policy is set here, before a case loads torch, as the CLI's
+    ``main`` sets it (what a user set in the environment wins).
+    """
+    apply_thread_policy()
     spec = json.loads(payload)
     if spec.get("threads"):
         import torch

@@ -114,7 +114,7 @@ def run_preset(spec: dict) -> dict:
             marks.setdefault("first_proposal", time.perf_counter())
 
     run_start = time.perf_counter()
-    result = stylize(scene, cameras, style, config, progress=progress)
+    result = stylize(scene, cameras, style, config, progress=harness.THREADS.wrap(progress))
     stages = [e for e in result.log if e["stage"] != "post"]
     post = [e for e in result.log if e["stage"] == "post"]
     stage_s = sum(e["stage_seconds"] for e in stages)

@@ -2,7 +2,8 @@
 
 Imports nothing heavy at package import time and never imports ``bpy``: the Blender operators in
 ``operators/`` and the command line (``python -m dresg_addon``) are thin layers over this package.
-Importing it sets how torch's CPU threads wait (:mod:`dresg_addon.util.threads`), before torch loads.
+Importing it changes nothing in the process: the thread policy (:mod:`dresg_addon.util.threads`) is the
+business of the code that owns the process, the CLI's ``main`` here and the host application elsewhere.
 
 Packages, bottom to top; each imports only its own and those below it (tests/test_package.py checks):
 
@@ -16,7 +17,4 @@ commands    the sub-commands of the CLI (``cli`` builds the parser, ``__main__``
 ==========  =====================================================================================
 """
 
-from .util.threads import apply_thread_policy
-
 __version__ = "0.1.0"
-THREAD_POLICY = apply_thread_policy()

@@ -3,6 +3,8 @@
 
 Each command module defines ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``.
 Engine errors (:class:`~dresg_addon.util.errors.DresgError`) become one line on stderr and exit code 2.
+``main`` owns the process: it applies the thread policy (:mod:`dresg_addon.util.threads`) and hands each
+command a :class:`~dresg_addon.util.threads.ThreadAdapter` for torch's thread count (``args.threads``).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import sys
 
 from . import __version__
 from .util.errors import DresgError
+from .util.threads import ThreadAdapter, apply_thread_policy
 
 COMMAND_MODULES = (
     "info",
@@ -54,7 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    apply_thread_policy()  # before any command loads torch: libgomp reads it once
     args = build_parser().parse_args(argv)
+    args.threads = ThreadAdapter()  # the commands call it between views and steps, on this thread
     try:
         return int(args.run(args) or 0)
     except DresgError as error:

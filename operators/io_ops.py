@@ -116,6 +116,9 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
         except DresgError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
+        # F12 calls the render set-up's handlers on the render thread: they change the objects only with the
+        # interface locked (render_setup.py)
+        context.scene.render.use_lock_interface = True
         if self.set_viewport_shading:
             for area in context.screen.areas if context.screen else ():
                 if area.type == "VIEW_3D":

@@ -16,6 +16,7 @@ import bpy
 
 from ..dresg_addon.method.bookkeeping import ProgressLines, format_seconds
 from ..dresg_addon.util.errors import DresgError
+from ..dresg_addon.util.threads import ThreadAdapter
 from .splat_object import is_splat_object, object_mode, write_colors, write_geometry
 from .tasks import BackgroundTask, tag_redraw
 
@@ -99,18 +100,23 @@ class StylizeJob:
 
         scene, cameras, style_rgb, views = self._inputs
         self._inputs = None  # the snapshot is the worker's now
-        return stylize(
-            scene,
-            cameras,
-            style_rgb,
-            self.config,
-            views=views,
-            progress=lambda progress: post("progress", progress),
-            on_stage=lambda update: post("stage", update),
-            cancel=cancel,
-            messages=lambda message: post("message", message),
-            mask=self.mask,
-        )
+        # torch's thread count for this thread's work only; Blender's environment is not ours to change
+        threads = ThreadAdapter()
+        try:
+            return stylize(
+                scene,
+                cameras,
+                style_rgb,
+                self.config,
+                views=views,
+                progress=threads.wrap(lambda progress: post("progress", progress)),
+                on_stage=lambda update: post("stage", update),
+                cancel=cancel,
+                messages=lambda message: post("message", message),
+                mask=self.mask,
+            )
+        finally:
+            threads.restore()  # torch gives the count last set to the next thread (the next job's)
 
     # -- main thread ---------------------------------------------------------------------------
 

@@ -12,9 +12,16 @@
   Size (perspective) or Render Pixel Width (orthographic) is set from the render camera and resolution (0, no
   low-pass, in the viewport, whose size varies).
 
-Handlers run on the main thread, before the render's depsgraph is built; every value changed is restored
-in ``render_post`` / ``render_cancel``, so the file is saved as the user left it.
+``render_pre`` runs before the render's depsgraph is built; every value changed is restored in ``render_post``
+/ ``render_cancel``, so the file is saved as the user left it. An F12 in the UI calls these handlers on the
+render job's thread while the main thread may draw the viewport from the same objects: Blender's API docs
+(bpy.app.handlers, "Note on Altering Data", https://docs.blender.org/api/5.0/bpy.app.handlers.html, the same
+in 4.2) say to lock the interface (Render > Lock Interface) before such a render, and a locked interface
+neither draws nor updates the depsgraph while the job runs. So the handlers change the objects only then, or
+on the main thread (a script's or ``blender -b``'s render blocks it); the import turns the lock on.
 """
+
+import threading
 
 import bpy
 
@@ -82,8 +89,19 @@ def _splat_modifiers(scene):
             yield obj, modifier
 
 
+def may_change_objects(scene) -> bool:
+    """Whether a render handler may write to the splat objects now (see the module's docstring)."""
+    return threading.current_thread() is threading.main_thread() or scene.render.use_lock_interface
+
+
 @bpy.app.handlers.persistent
 def _before_render(scene, *_):
+    if not may_change_objects(scene):
+        print(
+            "Stylize Gaussians: Render > Lock Interface is off, so this render shows the splat objects as the "
+            "viewport does (Workbench: flat grey; EEVEE: no low-pass); turn it on for final renders of splats"
+        )
+        return
     _restore()
     settings = _settings_for(scene)
     for obj, modifier in _splat_modifiers(scene):

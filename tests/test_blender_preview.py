@@ -101,6 +101,48 @@ def test_render_settings_are_put_back_after_each_render(addon, tmp_path):
     assert eevee == pytest.approx({**before, INPUT_PIXEL: pixel})
 
 
+def test_render_handlers_change_the_objects_only_where_blender_says_it_is_safe(addon, tmp_path, monkeypatch, capsys):
+    """An F12 in the UI calls the render handlers on the render job's thread; Blender's docs (bpy.app.handlers, "Note
+    on Altering Data") say to lock the interface when a handler changes data there. Off the main thread the set-up
+    runs only with the lock on (the import turns it on); Workbench renders show its effect, the object comes back."""
+    import threading
+    import types
+
+    from stylize_gaussians.dresg_addon.scene.demo import demo_scene
+    from stylize_gaussians.dresg_addon.scene.io import write_scene
+    from stylize_gaussians.operators.splat_object import INPUT_SOFT, modifier_input, splat_modifier
+
+    write_scene(demo_scene(0), tmp_path / "demo.ply")
+    assert bpy.ops.dresg.import_splats(filepath=str(tmp_path / "demo.ply"), axis_conversion="NONE") == {"FINISHED"}
+    scene = bpy.context.scene
+    assert scene.render.use_lock_interface
+    modifier = splat_modifier(bpy.context.active_object)
+    bpy.ops.dresg.add_orbit_cameras(count=2)
+    scene.camera = addon.operators.views.scene_cameras(scene)[0]
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 96, 72, 100
+    scene.render.film_transparent = True
+    scene.render.image_settings.file_format, scene.render.image_settings.color_mode = "PNG", "RGBA"
+    render_thread = types.SimpleNamespace(current_thread=lambda: None, main_thread=threading.main_thread)
+    monkeypatch.setattr(addon.operators.render_setup, "threading", render_thread)  # as F12's job thread
+    soft = []
+    during = lambda *_: soft.append(modifier_input(modifier, INPUT_SOFT))  # noqa: E731
+    bpy.app.handlers.render_post.insert(0, during)  # before the add-on's own handler puts things back
+    try:
+        images = {}
+        for locked in (False, True):
+            scene.render.use_lock_interface = locked
+            images[locked] = _eevee_rgba(scene, tmp_path / f"locked_{locked}.png")
+            assert modifier_input(modifier, INPUT_SOFT) is True  # as the user left it
+    finally:
+        bpy.app.handlers.render_post.remove(during)
+    assert soft == [True, False]  # unlocked: left alone; locked: the Workbench set-up
+    assert "Lock Interface is off" in capsys.readouterr().out
+    covered = (images[True][..., 3] > 0.5) & (images[False][..., 3] > 0.5)
+    assert covered.mean() > 0.02, covered.mean()
+    assert _chroma(images[True][..., :3])[covered].mean() > 2 * _chroma(images[False][..., :3])[covered].mean() + 0.1
+
+
 def _eevee_rgba(scene, path) -> np.ndarray:
     from stylize_gaussians.dresg_addon.util.imageio import read_image
 

@@ -57,7 +57,7 @@ def _layer(module: str) -> int:
     if parts and parts[0] in ("cli", "__main__"):
         return len(LAYERS) - 1
     if not parts or parts[0] not in LAYERS:
-        return 0  # the package root and its attributes (__version__): only the thread policy, from util
+        return 0  # the package root and its attributes (__version__): it imports nothing of the engine
     return LAYERS.index(parts[0])
 
 

@@ -1,5 +1,6 @@
-"""Threads under load (issue 13): a short OpenMP spin set where the engine is entered, and torch threads
-matched to the cores other processes leave free."""
+"""Threads under load (issues 13 and 29): a short OpenMP spin and torch threads matched to the cores other
+processes leave free, applied by the code that owns the process (the CLI's main), never by importing the
+engine or by ``render`` (in Blender the process is Blender's)."""
 
 import os
 import subprocess
@@ -26,11 +27,103 @@ def test_user_settings_and_a_loaded_torch_win(monkeypatch):
     assert "left as is" in apply_thread_policy(environ) and environ == {}
 
 
-def test_importing_the_engine_sets_the_policy_before_torch():
+def _without_thread_settings(**extra) -> dict:
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
-    code = "import os, dresg_addon, torch; print(os.environ.get('OMP_WAIT_POLICY'), os.environ.get('GOMP_SPINCOUNT'))"
-    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.split() == ["None", SPIN_COUNT]
+    path = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))  # this checkout's engine from any folder
+    return {**env, "PYTHONPATH": path, "DRESG_ADAPTIVE_THREADS": "1", **extra}
+
+
+def _python(code: str, env: dict, cwd=REPO) -> list[str]:
+    done = subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return done.stdout.split()
+
+
+def test_importing_the_engine_leaves_the_environment_and_torch_threads_alone():
+    env = _without_thread_settings()
+    default = _python("import torch; print(torch.get_num_threads())", env)
+    code = (
+        "import os\n"
+        "before = dict(os.environ)\n"
+        "import dresg_addon, dresg_addon.cli, dresg_addon.raster, dresg_addon.method.loop, torch\n"
+        "print(dict(os.environ) == before, torch.get_num_threads())"
+    )
+    assert _python(code, env) == ["True", *default]
+
+
+# Renders with the adaptation switched on and a neighbour taking both cores: render() must still leave threads alone.
+RENDER_CODE = """
+import threading, torch
+from dresg_addon.util import threads
+from dresg_addon.raster import RasterSettings, render_scene
+from dresg_addon.scene.demo import demo_cameras, demo_scene
+
+threads.CoreMonitor.others_busy = lambda self, min_interval_s=0.0: 2.0
+monitors, calls = [], []
+original_monitor, original_set = threads.CoreMonitor.__init__, torch.set_num_threads
+def monitor(self):
+    monitors.append(1)
+    original_monitor(self)
+def set_num_threads(n):
+    calls.append(threading.current_thread().name)
+    original_set(n)
+threads.CoreMonitor.__init__, torch.set_num_threads = monitor, set_num_threads
+
+def fresh_thread_count():
+    seen = []
+    thread = threading.Thread(target=lambda: seen.append(torch.get_num_threads()))
+    thread.start()
+    thread.join()
+    return seen[0]
+
+scene = demo_scene(0)
+camera = demo_cameras(scene, n=2)[0]
+settings = RasterSettings(band_pairs=20_000)  # several row bands: the band pool starts (with 2+ torch threads)
+own, fresh = torch.get_num_threads(), fresh_thread_count()
+for _ in range(3):
+    render_scene(scene, camera, settings)
+main_calls = calls.count(threading.current_thread().name)
+pool_started = own < 2 or any(name.startswith("dresg-raster") for name in calls)
+calls.clear()
+render_scene(scene, camera, settings)
+print(len(monitors), main_calls, len(calls), pool_started, torch.get_num_threads() == own, fresh_thread_count() == fresh)
+"""
+
+
+def test_render_sets_no_thread_count():
+    """No load measured, no count set on the caller's thread (nor at all once the band pool runs), and threads
+    started later get torch's count as before (the pool's own one-thread setting does not leak to them)."""
+    pytest.importorskip("torch")
+    assert _python(RENDER_CODE, _without_thread_settings()) == ["0", "0", "0", "True", "True", "True"]
+
+
+def test_the_cli_main_applies_the_policy(tmp_path):
+    """``main`` sets the spin before torch loads, and the render command adapts the threads before each view."""
+    pytest.importorskip("torch")
+    from dresg_addon.scene.camera_io import write_cameras_json
+    from dresg_addon.scene.demo import demo_cameras, demo_scene
+    from dresg_addon.scene.io import write_scene
+
+    scene = demo_scene(0)
+    write_scene(scene, tmp_path / "scene.ply")
+    write_cameras_json(tmp_path / "cameras.json", [c.resized(48, 32) for c in demo_cameras(scene, n=3)])
+    code = """
+import os, sys
+from dresg_addon import cli
+from dresg_addon.util import threads
+adapted = []
+original = threads.ThreadAdapter.adapt
+threads.ThreadAdapter.adapt = lambda self: adapted.append(1) or original(self)
+before = os.environ.get("GOMP_SPINCOUNT")
+code = cli.main(["render", "scene.ply", "--cameras", "cameras.json", "--out", "out"])
+print(before, os.environ.get("GOMP_SPINCOUNT"), "torch" in sys.modules, len(adapted), code, file=sys.stderr)
+"""
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=_without_thread_settings(), capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.split()[-5:] == ["None", SPIN_COUNT, "True", "3", "0"]
+    assert len(list((tmp_path / "out").glob("*.png"))) == 3
 
 
 def test_threads_follow_the_cores_other_processes_leave():
@@ -60,27 +153,42 @@ def test_core_monitor_sees_a_busy_neighbour():
         assert others >= 0.75, others
 
 
-def test_adapting_leaves_a_callers_choice_alone(monkeypatch):
+class _Busy:
+    cores = 2
+
+    def others_busy(self):
+        return 1.0  # one core of two taken
+
+
+def test_adapting_leaves_an_owners_choice_alone():
     torch = pytest.importorskip("torch")
-    from dresg_addon.util import threads
-
-    class Busy:
-        cores = 2
-
-        def others_busy(self):
-            return 1.0  # one core of two taken
+    from dresg_addon.util.threads import ThreadAdapter
 
     before = torch.get_num_threads()
-    monkeypatch.setenv("DRESG_ADAPTIVE_THREADS", "1")
-    monkeypatch.setattr(threads, "_monitor", Busy())
     try:
         torch.set_num_threads(2)
-        monkeypatch.setattr(threads, "_last_set", 2)
-        monkeypatch.setattr(threads, "_preferred", 2)
-        assert threads.adapt_torch_threads() == 1 and torch.get_num_threads() == 1
-        torch.set_num_threads(2)  # the caller's own choice since: adopted, not undone
-        assert threads.adapt_torch_threads() is None and torch.get_num_threads() == 2
-        monkeypatch.setenv("DRESG_ADAPTIVE_THREADS", "0")
-        assert threads.adapt_torch_threads() is None and torch.get_num_threads() == 2
+        adapter = ThreadAdapter({"DRESG_ADAPTIVE_THREADS": "1"})
+        assert adapter.adapt() is None and torch.get_num_threads() == 2  # the first call adopts the count
+        adapter._monitor = _Busy()
+        assert adapter.adapt() == 1 and torch.get_num_threads() == 1
+        torch.set_num_threads(2)  # the owner's own choice since: adopted, not undone
+        assert adapter.adapt() is None and torch.get_num_threads() == 2
+        assert adapter.adapt() == 1
+        adapter.restore()
+        assert torch.get_num_threads() == 2
+        off = ThreadAdapter({"DRESG_ADAPTIVE_THREADS": "0"})
+        off._monitor = _Busy()
+        assert off.adapt() is None and torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_wrapped_callback_adapts_first():
+    from dresg_addon.util.threads import ThreadAdapter
+
+    order = []
+    adapter = ThreadAdapter({"DRESG_ADAPTIVE_THREADS": "0"})
+    adapter.adapt = lambda: order.append("adapt")
+    assert adapter.wrap(lambda value: order.append(value) or "result")("step") == "result"
+    assert adapter.wrap(None)(3, 7) is None  # select_active_views calls progress(done, total)
+    assert order == ["adapt", "step", "adapt"]

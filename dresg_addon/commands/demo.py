@@ -66,7 +66,7 @@ def run(args) -> int:
         cameras,
         style,
         config,
-        progress=progress,
+        progress=args.threads.wrap(progress),
         log_path=out / "stylize.log.jsonl",
         messages=lambda m: print(m, file=sys.stderr),
     )

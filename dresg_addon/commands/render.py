@@ -143,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     total_pairs, empty = 0, 0
     for camera, stem in zip(cameras, output_stems(cameras)):
+        args.threads.adapt()
         view_start = time.perf_counter()
         out = render_scene(scene, camera, settings, device=device)
         seconds = time.perf_counter() - view_start

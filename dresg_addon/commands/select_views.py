@@ -35,7 +35,7 @@ def run(args) -> int:
         coverage_stop=args.coverage_stop,
         gain_threshold=args.gain_threshold,
     )
-    chosen = select_active_views(scene, cameras, config, device=device)
+    chosen = select_active_views(scene, cameras, config, progress=args.threads.wrap(None), device=device)
     names = [c.name or f"view_{i:03d}" for i, c in enumerate(cameras)]
     if args.json:
         print(json.dumps({

@@ -332,7 +332,7 @@ def run(args) -> int:
         style,
         config,
         views=views,
-        progress=progress,
+        progress=args.threads.wrap(progress),
         checkpoint_dir=checkpoint_dir,
         log_path=log_path,
         save_views_dir=args.save_views,

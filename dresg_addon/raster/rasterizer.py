@@ -31,7 +31,6 @@ import numpy as np
 import torch
 
 from ..scene.camera import Camera
-from ..util.threads import adapt_torch_threads
 from .projection import project_gaussians
 from .workers import cpu_workers, in_workers
 
@@ -441,8 +440,6 @@ def render(
     if visibility not in (None, "all", "depth_consistent"):
         raise ValueError(f"render: visibility must be None, 'all' or 'depth_consistent', not {visibility!r}")
     device, out_dtype = colors.device, colors.dtype
-    if device.type == "cpu":
-        adapt_torch_threads()  # fewer threads while other processes hold cores (measured every 2 s at most)
     height, width = camera.height, camera.width
     w2c = torch.as_tensor(camera.world_to_camera, dtype=torch.float64, device=device)
     valid = torch.isfinite(opacity_logits.detach()) & torch.isfinite(colors.detach()).all(-1)
@@ -639,8 +636,6 @@ class ColorOnlyRenderer:
         )
 
     def __call__(self, colors: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [H, W, 3]
-        if colors.device.type == "cpu":
-            adapt_torch_threads()
         rgb = _SparseColor.apply(colors.float(), self.map.matrix, self.map.matrix_t) + self.background
         return rgb.reshape(*self.shape, 3)
 

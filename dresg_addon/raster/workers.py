@@ -22,8 +22,31 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     """One lasting pool per size: its threads keep their malloc arenas warm from view to view."""
     with _pool_lock:
         if workers not in _pools:
-            _pools[workers] = ThreadPoolExecutor(workers, _PREFIX, initializer=torch.set_num_threads, initargs=(1,))
+            _pools[workers] = _start_pool(workers)
         return _pools[workers]
+
+
+def _in_new_thread(function):
+    result = []
+    thread = threading.Thread(target=lambda: result.append(function()), name=f"{_PREFIX}-setup")
+    thread.start()
+    thread.join()
+    return result[0]
+
+
+def _start_pool(workers: int) -> ThreadPoolExecutor:
+    """A pool of ``workers`` threads, started now, each running torch with one thread.
+
+    torch hands every thread started later the count last set on any thread: left at the pool's 1, a
+    host's next thread (a Blender job's worker) would run torch on one thread. So the count new threads
+    got before is set back, from a throwaway thread so that the caller's own count is not touched.
+    """
+    for_new_threads = _in_new_thread(torch.get_num_threads)
+    pool = ThreadPoolExecutor(workers, _PREFIX, initializer=torch.set_num_threads, initargs=(1,))
+    started = threading.Barrier(workers, timeout=60)
+    list(pool.map(lambda _: started.wait(), range(workers)))  # every thread has run its initializer
+    _in_new_thread(lambda: torch.set_num_threads(for_new_threads))
+    return pool
 
 
 def in_workers(work, items, workers: int) -> list:

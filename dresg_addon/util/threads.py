@@ -1,4 +1,9 @@
-"""How torch's CPU threads wait, set where the engine is entered (no torch import here).
+"""How torch's CPU threads wait and how many run: a policy for the code that owns the process or thread.
+
+The CLI's ``main`` and the benchmark workers own their process and call :func:`apply_thread_policy`
+before torch loads; they and the Blender job's worker thread adapt their own thread's count with a
+:class:`ThreadAdapter`. Importing the engine or rendering changes neither: in Blender the process is
+Blender's (no torch import here).
 
 torch's CPU build runs its ops on an OpenMP (libgomp) pool whose threads spin after each op before
 they sleep (300,000 spins by default). On a quiet machine that saves a wake-up per op; on a busy one
@@ -6,7 +11,7 @@ the spinning threads take the cores the work needs. Measured on 2 cores, renderi
 448x320 through the CLI: 4.5 s quiet; next to another torch process doing small ops (whose threads
 spin too) 106 s by default, 9.5 s with a spin count of 2,000 and 6.9 s with passive waiting; next to
 a pure-Python busy loop 8.7 s by default and 8.8 s with 2,000 spins. Passive waiting costs ~15% on a
-quiet machine, 2,000 spins nothing measurable, so the engine sets 2,000 (bench/README.md, "Under load").
+quiet machine, 2,000 spins nothing measurable, so the policy sets 2,000 (bench/README.md, "Under load").
 
 What the user set in the environment wins, and nothing changes once torch is loaded (libgomp reads
 these variables once). The load average cannot tell another job's load from this process's own recent
@@ -18,6 +23,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from collections.abc import Callable
 
 SPIN_COUNT = "2000"
 USER_SETTINGS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
@@ -85,36 +91,59 @@ def threads_for_load(others_busy: float, cores: int, preferred: int) -> int:
     return max(1, min(preferred, cores - min(taken, cores)))
 
 
-_monitor: CoreMonitor | None = None
-_preferred: int | None = None  # the thread count without load: torch's, or the caller's latest choice
-_last_set: int | None = None  # the count as this module last left it
+class ThreadAdapter:
+    """Matches torch's CPU threads on one thread to the cores other processes leave free.
 
-
-def adapt_torch_threads() -> int | None:
-    """Match torch's CPU threads to the cores other processes leave free; the new count when it changed.
-
-    Called by the rasterizer before each render; measures at most every 2 s. Threads that spin or wait
-    on a core another process holds make every op wait for them (5-24x slower on 2 cores); one thread
-    per free core keeps the slowdown near the share of cores taken. A count the caller sets with
-    ``torch.set_num_threads`` becomes the new ceiling; ``DRESG_ADAPTIVE_THREADS=0`` turns this off.
+    Owned by whoever owns the thread that runs torch (the CLI's ``main``, a benchmark worker, the Blender
+    job's worker thread) and called by it between steps (:meth:`wrap` a progress callback): never by the
+    engine, which runs in processes it does not own (Blender). torch's count is per thread, so call it on
+    the thread that renders. Measures at most every 2 s. Threads that spin or wait on a core another
+    process holds make every op wait for them (5-24x slower on 2 cores); one thread per free core keeps the
+    slowdown near the share of cores taken. A count the owner sets with ``torch.set_num_threads`` becomes
+    the new ceiling; ``DRESG_ADAPTIVE_THREADS=0`` in the environment turns this off.
     """
-    global _monitor, _preferred, _last_set
-    if os.environ.get(ADAPT_VARIABLE, "1") == "0":
-        return None
-    import torch
 
-    current = torch.get_num_threads()
-    if _monitor is None or current != _last_set:  # first call, or the caller chose a count since
-        if _monitor is None:
-            _monitor = CoreMonitor()
-        _preferred = _last_set = current
-        return None
-    others = _monitor.others_busy()
-    if others is None:
-        return None
-    wanted = threads_for_load(others, max(_monitor.cores, 1), _preferred)
-    if wanted == current:
-        return None
-    torch.set_num_threads(wanted)
-    _last_set = wanted
-    return wanted
+    def __init__(self, environ=os.environ) -> None:
+        self.enabled = environ.get(ADAPT_VARIABLE, "1") != "0"
+        self._monitor: CoreMonitor | None = None
+        self._preferred: int | None = None  # the count without load: the thread's own, or its owner's latest choice
+        self._last_set: int | None = None  # the count as this adapter last left it
+
+    def adapt(self) -> int | None:
+        """Set the calling thread's torch threads for the current load; the new count when it changed."""
+        if not self.enabled:
+            return None
+        import torch
+
+        current = torch.get_num_threads()
+        if self._monitor is None or current != self._last_set:  # first call, or the owner chose a count since
+            if self._monitor is None:
+                self._monitor = CoreMonitor()
+            self._preferred = self._last_set = current
+            return None
+        others = self._monitor.others_busy()
+        if others is None:
+            return None
+        wanted = threads_for_load(others, max(self._monitor.cores, 1), self._preferred)
+        if wanted == current:
+            return None
+        torch.set_num_threads(wanted)
+        self._last_set = wanted
+        return wanted
+
+    def restore(self) -> None:
+        """Put back the count the thread had before any change (torch hands the last count set to new threads)."""
+        if self._preferred is not None and self._last_set != self._preferred:
+            import torch
+
+            torch.set_num_threads(self._preferred)
+            self._last_set = self._preferred
+
+    def wrap(self, callback: Callable | None) -> Callable:
+        """``callback`` (may be None) that adapts first: a progress callback the engine calls between its steps."""
+
+        def adapting(*args, **kwargs):
+            self.adapt()
+            return None if callback is None else callback(*args, **kwargs)
+
+        return adapting
