@@ -108,6 +108,7 @@ COLUMNS = (
     ("long_rmse", "long RMSE ↓", 4),
     ("min_closed", "closed ↑", 2),
     ("fit_ratio", "fit/opt ↓", 2),
+    ("disagreement", "disagree ↓", 2),
 )
 
 
@@ -160,14 +161,18 @@ def colour_transfer_scene(scene, cameras, style):
 
 
 def fit_summary(log: list[dict]) -> dict:
-    """The smallest share of a stage's target gap closed, and the largest fit residual / optimum ratio."""
+    """The smallest share of a stage's target gap closed, the largest fit residual / optimum ratio, and the last
+    stage's view disagreement (joint over single-view residual: how much of its views' marks the fit averages)."""
     stages = [e for e in log if e.get("target_gap")]
     closed = [e["gap_closed"] for e in stages]
     ratios = [e["fit_residual"] / e["optimum_residual"] for e in stages if e.get("optimum_residual")]
+    disagreement = [e["view_disagreement"] for e in stages if e.get("stage") != "post" and "view_disagreement" in e]
     return {
         "min_closed": min(closed) if closed else None,
         "fit_ratio": max(ratios) if ratios else None,
+        "disagreement": disagreement[-1] if disagreement else None,
         "closed_per_stage": closed,
+        "disagreement_per_stage": disagreement,
     }
 
 

@@ -38,7 +38,7 @@ def test_quality_evaluate_reports_every_measured_column(case):
     result = evaluate_views(recoloured, base, style)  # what quality.run_case measures
     measured = result.mean
     assert len(result.renders_2x) == len(cameras)
-    fit_keys = {"min_closed", "fit_ratio"}  # from the stylize log, not from the views
+    fit_keys = {"min_closed", "fit_ratio", "disagreement"}  # from the stylize log, not from the views
     for key, _, _ in quality.COLUMNS:
         if key not in fit_keys:
             assert key in measured and measured[key] is not None and math.isfinite(measured[key]), key
@@ -74,3 +74,29 @@ def test_quality_verdicts_check_texture_kept_over_the_pairs_and_shapes_per_scene
     del results[("luigi", "a")]
     line = next(line for line in quality.verdicts(results, ["colour-transfer", "preview"], True) if "per scene" in line)
     assert line.count(": met") == 2
+
+
+def test_the_fit_summary_takes_the_last_stage_s_view_disagreement_and_leaves_the_post_stage_out():
+    log = [
+        {
+            "stage": 1,
+            "target_gap": 0.2,
+            "gap_closed": 0.9,
+            "fit_residual": 0.1,
+            "optimum_residual": 0.1,
+            "view_disagreement": 1.8,
+        },
+        {
+            "stage": 2,
+            "target_gap": 0.1,
+            "gap_closed": 0.8,
+            "fit_residual": 0.1,
+            "optimum_residual": 0.05,
+            "view_disagreement": 1.4,
+        },
+        {"stage": "post", "target_gap": 0.1, "gap_closed": 0.5, "fit_residual": 0.1, "view_disagreement": 9.0},
+    ]
+    summary = quality.fit_summary(log)
+    assert summary["disagreement"] == 1.4 and summary["disagreement_per_stage"] == [1.8, 1.4]
+    assert summary["min_closed"] == 0.5 and summary["fit_ratio"] == 2.0
+    assert quality.fit_summary([])["disagreement"] is None
