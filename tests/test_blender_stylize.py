@@ -59,7 +59,8 @@ def render_mean_colour(path) -> np.ndarray:
     scene.camera = bpy.data.objects["orbit_000"]
     scene.render.engine = "BLENDER_WORKBENCH"  # shows the realized splats, not the soft ones
     from stylize_gaussians.operators import render_setup
-    from stylize_gaussians.operators.splat_object import INPUT_SOFT, set_modifier_input, splat_modifier
+    from stylize_gaussians.operators.splat_nodes import INPUT_SOFT
+    from stylize_gaussians.operators.splat_object import set_modifier_input, splat_modifier
 
     for obj in scene.objects:
         if splat_modifier(obj) is not None:

@@ -5,17 +5,15 @@ import textwrap
 import bpy
 
 from ..operators import dependencies, job
-from ..operators.splat_object import (
+from ..operators.splat_nodes import (
     INPUT_MAX_SPLATS,
     INPUT_MIN_OPACITY,
     INPUT_SCALE,
     INPUT_SHAPE,
     INPUT_SOFT,
     INPUT_SOLID,
-    has_stylized_colors,
-    is_splat_object,
-    splat_modifier,
 )
+from ..operators.splat_object import has_stylized_colors, is_splat_object, splat_modifier
 from ..operators.stylize import addon_preferences
 from ..operators.views import current_selection, fit_size, scene_cameras
 
