@@ -42,10 +42,7 @@ def register() -> None:
 
 
 def unregister() -> None:
-    current = job.current()
-    if current is not None:
-        current.cancel()
-        job.set_current(None)
+    tasks.stop_jobs()
     render_setup.unregister()
     properties.detach()
     for cls in reversed(classes):

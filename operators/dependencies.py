@@ -5,22 +5,27 @@ subprocess (``pip install --target``) into a folder of the add-on's user directo
 extension upgrades, and puts that folder on ``sys.path``. Import, export and viewing never need torch.
 """
 
+import contextlib
 import importlib
 import importlib.util
 import os
+import queue
+import signal
 import subprocess
 import sys
-from dataclasses import dataclass, field
+import threading
 from pathlib import Path
 
 import bpy
 
-from ..dresg_addon.util.errors import DresgError
+from ..dresg_addon.util.errors import CancelledError, DresgError
 from . import ADDON_PACKAGE
-from .tasks import BackgroundTask, tag_redraw
+from .tasks import CancelJobOperator, Job, JobOperator, JobState
 
 TORCH_REQUIREMENT = "torch==2.13.0"
 TAIL_LINES = 12  # output lines kept for the panel and for error messages
+STOP_GRACE = 5.0  # seconds pip gets to exit after SIGTERM before it is killed
+CANCELLED_MESSAGE = "Installation cancelled: pip was stopped; Install Dependencies starts it again"
 
 
 def site_packages_dir(create: bool = False) -> Path:
@@ -60,77 +65,99 @@ def pip_commands(target: Path, requirement: str = TORCH_REQUIREMENT, index_url: 
     return commands
 
 
-@dataclass
-class Installer:
-    """Runs commands one after another as a :class:`~.tasks.BackgroundTask`, keeping the last lines of output.
+class Installer(Job):
+    """Runs commands one after another as a :class:`~.tasks.Job`, keeping the last lines of output.
 
-    The worker posts each output line; :meth:`poll` (main thread) applies them to ``lines``, ``done`` and
-    ``error``, which the panels read.
+    The worker posts each output line; :meth:`~.tasks.Job.poll` (main thread) applies them to ``lines`` and
+    ``text``, which the panels read. Cancelling stops the running command and what it started: the worker
+    checks the request ten times a second, even while the command prints nothing.
     """
 
-    commands: list[list[str]]
-    lines: list[str] = field(default_factory=list)
-    done: bool = False
-    error: str = ""
-    _task: BackgroundTask | None = None
+    kind = "install"
 
-    def start(self) -> None:
-        self._task = BackgroundTask("dresg-install", self._run)
-        self._task.start()
+    def __init__(self, commands: list[list[str]]) -> None:
+        super().__init__()
+        self.commands = commands
+        self.lines: list[str] = []
 
-    def wait(self, timeout: float | None = None) -> None:
-        """Wait for the commands, then apply their output (main thread)."""
-        if self._task is not None:
-            self._task.join(timeout)
-        self.poll()
+    def _update(self, events) -> None:
+        for _, line in events:  # only output lines
+            self.lines = [*self.lines[-(TAIL_LINES - 1) :], line]
+        self.text = "Cancelling..." if self.cancel_requested else self.lines[-1]
 
-    def poll(self) -> bool:
-        """Apply what the worker posted (main thread); True once every command has run or one failed."""
-        events = self._task.events() if self._task is not None else []
-        for kind, payload in events:
-            if kind == "line":
-                self.lines = [*self.lines[-(TAIL_LINES - 1) :], payload]
-            elif kind in ("done", "cancelled", "error"):
-                self.done, self.error = True, payload if kind == "error" else ""
-        if events:
-            tag_redraw()
-        return self.done
+    def _on_end(self) -> None:
+        if self.state is JobState.CANCELLED:
+            self.text = CANCELLED_MESSAGE
 
-    @property
-    def status(self) -> str:
-        return self.lines[-1] if self.lines else "Starting..."
-
-    def _run(self, post, cancel) -> None:  # worker thread: no bpy
-        tail: list[str] = []
+    def _work(self, post, cancel) -> None:  # worker thread: no bpy
         for command in self.commands:
-            try:
-                process = subprocess.Popen(
-                    command,
-                    stdout=subprocess.PIPE,
-                    stderr=subprocess.STDOUT,
-                    text=True,
-                    env={**os.environ, "PYTHONNOUSERSITE": "1"},
-                )
-            except OSError as error:
-                raise DresgError(f"cannot run {command[0]}: {error}") from None
-            for line in process.stdout:
-                if line.strip():
-                    tail = [*tail[-2:], line.rstrip()]
-                    post("line", line.rstrip())
-            if process.wait() != 0:
-                output = " | ".join(tail) or "no output"
-                raise DresgError(f"'{' '.join(command[1:4])}' failed (exit code {process.returncode}): {output}")
+            if cancel.is_set():
+                raise CancelledError(CANCELLED_MESSAGE)
+            _run_command(command, post, cancel)
 
 
-_installer: Installer | None = None
+def _run_command(command: list[str], post, cancel: threading.Event) -> None:
+    """Run ``command``, posting its output lines; stop it (and its children) when ``cancel`` is set."""
+    try:
+        process = subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "PYTHONNOUSERSITE": "1"},
+            start_new_session=True,  # its own process group, so a cancel reaches what pip starts (POSIX)
+        )
+    except OSError as error:
+        raise DresgError(f"cannot run {command[0]}: {error}") from None
+    output: queue.SimpleQueue = queue.SimpleQueue()
+    # A reader thread, so the worker sees a cancel while the command is silent (a download).
+    threading.Thread(target=_read_lines, args=(process.stdout, output), name="dresg-install-output", daemon=True).start()
+    tail: list[str] = []
+    while True:
+        if cancel.is_set():
+            _stop(process)
+            raise CancelledError(CANCELLED_MESSAGE)
+        try:
+            line = output.get(timeout=0.1)
+        except queue.Empty:
+            continue
+        if line is None:  # the command closed its output
+            break
+        if line.strip():
+            tail = [*tail[-2:], line.rstrip()]
+            post("line", line.rstrip())
+    if process.wait() != 0:
+        text = " | ".join(tail) or "no output"
+        raise DresgError(f"'{' '.join(command[1:4])}' failed (exit code {process.returncode}): {text}")
 
 
-def current_installer() -> Installer | None:
-    return _installer
+def _read_lines(stream, output: queue.SimpleQueue) -> None:
+    try:
+        for line in stream:
+            output.put(line)
+    finally:  # None ends the worker's loop even if reading failed
+        output.put(None)
 
 
-class DRESG_OT_install_dependencies(bpy.types.Operator):
-    """Install PyTorch into the add-on's user folder (a large download, several minutes)"""
+def _stop(process: subprocess.Popen) -> None:
+    """SIGTERM to the command and what it started, SIGKILL to whatever is left after ``STOP_GRACE`` seconds."""
+    _signal(process, signal.SIGTERM)
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        process.wait(STOP_GRACE)
+    _signal(process, getattr(signal, "SIGKILL", signal.SIGTERM))
+    process.wait()
+
+
+def _signal(process: subprocess.Popen, sig: int) -> None:
+    if os.name != "posix":
+        process.terminate()  # Windows: the command only
+        return
+    with contextlib.suppress(ProcessLookupError):  # the group is empty: nothing left to stop
+        os.killpg(process.pid, sig)
+
+
+class DRESG_OT_install_dependencies(JobOperator, bpy.types.Operator):
+    """Install PyTorch into the add-on's user folder (a large download, several minutes); Esc cancels"""
 
     bl_idname = "dresg.install_dependencies"
     bl_label = "Install Dependencies"
@@ -140,39 +167,31 @@ class DRESG_OT_install_dependencies(bpy.types.Operator):
         name="Index URL", description="Package index to install from (empty: pip's default, PyPI)"
     )
 
-    _timer = None
+    _interval = 0.5
+    _interrupted = "Installation cancelled: Blender ended it (was another file opened?); pip was stopped"
 
     @classmethod
     def poll(cls, context):
-        if _installer is not None and not _installer.done:
+        if Installer.active() is not None:
             cls.poll_message_set("An installation is already running")
             return False
         return True
 
     def execute(self, context):
-        global _installer
-        _installer = Installer(pip_commands(site_packages_dir(create=True), index_url=self.index_url))
-        _installer.start()
+        installer = Installer(pip_commands(site_packages_dir(create=True), index_url=self.index_url))
         if bpy.app.background:
-            _installer.wait()
-            return self._finish(context)
-        self._timer = context.window_manager.event_timer_add(0.5, window=context.window)
-        context.window_manager.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
+            return self.run_here(context, installer)
+        return self.run_modal(context, installer)
 
-    def modal(self, context, event):
-        if event.type != "TIMER":
-            return {"PASS_THROUGH"}
-        if not _installer.poll():
-            context.workspace.status_text_set(f"Installing PyTorch: {_installer.status}")
-            return {"PASS_THROUGH"}
-        context.window_manager.event_timer_remove(self._timer)
-        context.workspace.status_text_set(None)
-        return self._finish(context)
+    def _show_progress(self, context, job) -> None:
+        context.workspace.status_text_set(None if job is None else f"Installing PyTorch: {job.text}")
 
-    def _finish(self, context):
-        if _installer.error:
-            self.report({"ERROR"}, f"Installing PyTorch failed: {_installer.error}")
+    def _finish(self, context, installer: Installer):
+        if installer.state is JobState.CANCELLED:
+            self.report({"WARNING"}, installer.text)
+            return {"CANCELLED"}
+        if installer.state is JobState.ERROR:
+            self.report({"ERROR"}, f"Installing PyTorch failed: {installer.error}")
             return {"CANCELLED"}
         add_site_packages()
         if not torch_available():
@@ -182,4 +201,13 @@ class DRESG_OT_install_dependencies(bpy.types.Operator):
         return {"FINISHED"}
 
 
-classes = (DRESG_OT_install_dependencies,)
+class DRESG_OT_cancel_install(CancelJobOperator, bpy.types.Operator):
+    """Stop the PyTorch installation: pip and what it started are stopped"""
+
+    bl_idname = "dresg.cancel_install"
+    bl_label = "Cancel Installation"
+    bl_options = {"INTERNAL"}
+    _job_class = Installer
+
+
+classes = (DRESG_OT_install_dependencies, DRESG_OT_cancel_install)

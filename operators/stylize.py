@@ -9,7 +9,7 @@ from ..dresg_addon.scene import splat_mesh
 from ..dresg_addon.util.errors import DresgError, ImageError
 from . import ADDON_PACKAGE, job
 from .splat_object import is_splat_object, object_mode, restore_original, selection_mask, stylized_scene
-from .tasks import tag_redraw
+from .tasks import CancelJobOperator, JobOperator, JobState, tag_redraw
 from .views import active_cameras, fitting_cameras, scene_cameras
 
 IMAGE_KINDS = ("render", "proposal", "target", "residual")
@@ -109,7 +109,7 @@ def _cuda_available() -> bool:
     return torch.cuda.is_available()
 
 
-class DRESG_OT_stylize(bpy.types.Operator):
+class DRESG_OT_stylize(JobOperator, bpy.types.Operator):
     """Give the selected splats the look of the style image, from the ticked cameras; runs in the background, Esc cancels"""
 
     bl_idname = "dresg.stylize"
@@ -123,9 +123,6 @@ class DRESG_OT_stylize(bpy.types.Operator):
         name="DINOv2 Weights", description="Overrides the add-on preferences (scripts)", options={"HIDDEN", "SKIP_SAVE"}
     )
 
-    _timer = None
-    _job = None
-
     @classmethod
     def poll(cls, context):
         from .dependencies import torch_available
@@ -133,8 +130,7 @@ class DRESG_OT_stylize(bpy.types.Operator):
         if not is_splat_object(context.active_object):
             cls.poll_message_set("Select an object imported with Import Gaussian Splats")
             return False
-        current = job.current()
-        if current is not None and current.running:
+        if job.StylizeJob.active() is not None:
             cls.poll_message_set("A stylization is already running")
             return False
         if not torch_available():
@@ -158,9 +154,7 @@ class DRESG_OT_stylize(bpy.types.Operator):
         except DresgError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        job.set_current(run)
-        run.run_blocking()
-        return self._report(run)
+        return self.run_here(context, run)
 
     def invoke(self, context, event):
         if bpy.app.background:
@@ -172,51 +166,25 @@ class DRESG_OT_stylize(bpy.types.Operator):
             return {"CANCELLED"}
         if run.config.proposal == "sd15" and not _cuda_available():
             self.report({"WARNING"}, "SD1.5 without a GPU: each latent update takes seconds per view, expect hours")
-        job.set_current(run)
-        run.start()
-        self._job = run
-        self._timer = context.window_manager.event_timer_add(0.25, window=context.window)
-        context.window_manager.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
+        return self.run_modal(context, run)
 
-    def modal(self, context, event):
-        if event.type == "ESC" and event.value == "PRESS":
-            self._job.cancel()
-            return {"RUNNING_MODAL"}
-        if event.type != "TIMER" or not self._job.poll(context.window_manager):
-            return {"PASS_THROUGH"}
-        context.window_manager.event_timer_remove(self._timer)
-        return self._report(self._job)
-
-    def cancel(self, context):  # Blender ends the operator (file loaded, window closed)
-        self._job.abandon("Cancelled: the run was interrupted")
-        context.window_manager.event_timer_remove(self._timer)
-
-    def _report(self, run: job.StylizeJob):
-        if run.state == "ERROR":
+    def _finish(self, context, run: job.StylizeJob):
+        if run.state is JobState.ERROR:
             self.report({"ERROR"}, f"Stylize Gaussians failed: {run.error}")
             return {"CANCELLED"}
-        if run.state == "CANCELLED":
+        if run.state is JobState.CANCELLED:
             self.report({"WARNING"}, f"{run.text}; Restore Original Colours brings back the imported ones")
             return {"FINISHED"}  # the applied stages stay, as one undo step
         self.report({"INFO"}, run.summary())
         return {"FINISHED"}
 
 
-class DRESG_OT_cancel_stylize(bpy.types.Operator):
+class DRESG_OT_cancel_stylize(CancelJobOperator, bpy.types.Operator):
     """Stop the running stylization after the current optimizer step; the last finished stage stays"""
 
     bl_idname = "dresg.cancel_stylize"
     bl_label = "Cancel Stylization"
-
-    @classmethod
-    def poll(cls, context):
-        current = job.current()
-        return current is not None and current.running and not current.cancel_requested
-
-    def execute(self, context):
-        job.current().cancel()
-        return {"FINISHED"}
+    _job_class = job.StylizeJob
 
 
 class DRESG_OT_restore_colors(bpy.types.Operator):
@@ -241,8 +209,8 @@ class DRESG_OT_restore_colors(bpy.types.Operator):
 
     def execute(self, context):
         obj = context.active_object
-        if job.running_on(obj):  # the run must not write over the restored colours
-            job.current().cancel()
+        if job.StylizeJob.running_on(obj):  # the run must not write over the restored colours
+            job.StylizeJob.active().cancel()
         settings = context.scene.dresg
         try:
             with object_mode(obj):  # one exit from Edit Mode (and back) for the selection and the write
@@ -268,7 +236,7 @@ class DRESG_OT_open_view_images(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        current = job.current()
+        current = job.StylizeJob.current()
         if current is None or not current.images:
             cls.poll_message_set("No stage has finished yet")
             return False
@@ -276,7 +244,7 @@ class DRESG_OT_open_view_images(bpy.types.Operator):
 
     def execute(self, context):
         images = []
-        for view, kinds in job.current().images.items():
+        for view, kinds in job.StylizeJob.current().images.items():
             for kind in IMAGE_KINDS:
                 if kinds.get(kind) is not None:
                     images.append(_store_image(f"DReSG {view} {kind}", kinds[kind]))
@@ -308,9 +276,9 @@ class DRESG_OT_dismiss(bpy.types.Operator):
     bl_options = {"INTERNAL"}
 
     def execute(self, context):
-        current = job.current()
+        current = job.StylizeJob.current()
         if current is not None and not current.running:
-            job.set_current(None)
+            job.StylizeJob.forget()
         return {"FINISHED"}
 
 

@@ -14,7 +14,7 @@ from mathutils import Matrix
 from ..dresg_addon.scene import blender_camera
 from ..dresg_addon.util.errors import DresgError
 from .splat_object import is_splat_object, object_mode, scene_from_object, selection_mask
-from .tasks import BackgroundTask, tag_redraw
+from .tasks import CancelJobOperator, Job, JobOperator, JobState
 
 ORBIT_COLLECTION = "DReSG Orbit Cameras"
 IMPORTED_COLLECTION = "DReSG Cameras"
@@ -117,63 +117,35 @@ def _splat_poll(cls, context) -> bool:
     return True
 
 
-class SelectionJob:
-    """View selection as a :class:`~.tasks.BackgroundTask`: the splats and cameras are read on the main thread
-    first; the worker posts its progress once per camera, and :meth:`poll` (main thread) applies it: the bar's
+class SelectionJob(Job):
+    """View selection as a :class:`~.tasks.Job`: the splats and cameras are read on the main thread first; the
+    worker posts its progress once per camera, and :meth:`~.tasks.Job.poll` (main thread) applies it: the bar's
     fraction, its text, and in background mode (the bpy module, ``blender -b``) one printed line per camera."""
 
+    kind = "select-views"
+
     def __init__(self, splats, cameras, config, camera_names: list[str], mask=None) -> None:
+        super().__init__()
         self.camera_names = camera_names
         self.mask = mask  # [N] bool: count only these splats (the Stylize selection)
-        self.fraction, self.text = 0.0, f"Rendering coverage: 0/{len(cameras)} cameras"
+        self.text = f"Rendering coverage: 0/{len(cameras)} cameras"
         self.reports: list[tuple[int, int]] = []  # (cameras done, cameras) as they arrived
         self.result = None
-        self.error = ""
-        self.cancelled = False
         self._inputs = (splats, cameras, config)
-        self._task = BackgroundTask("dresg-select-views", self._work)
-        self.cancel = self._task.cancel_event
 
-    @property
-    def done(self) -> bool:
-        """The selection ended and :meth:`poll` has applied its outcome."""
-        return self._task.finished
+    def _update(self, events) -> None:
+        for _, (done, total) in events:  # only progress
+            self.reports.append((done, total))
+            name = self.camera_names[done - 1] if 0 < done <= len(self.camera_names) else ""
+            self.fraction = done / max(total, 1)
+            self.text = f"Rendering coverage: {done}/{total} cameras" + (f" ({name})" if name else "")
+            if self.cancel_requested:
+                self.text = "Cancelling..."
+            elif bpy.app.background:
+                print(f"[select views] {self.text}", flush=True)
 
-    def start(self) -> None:
-        self._task.start()
-
-    def run_blocking(self) -> None:
-        """Run on this (the main) thread, applying each camera's progress as it arrives (background mode)."""
-        self._task.run_blocking(self._apply)
-
-    def join(self, timeout: float | None = None) -> None:
-        """Wait for the worker, then apply what it posted (main thread)."""
-        self._task.join(timeout)
-        self.poll()
-
-    def poll(self) -> bool:
-        """Apply what the worker posted (main thread); True once the selection has ended."""
-        self._apply(self._task.events())
-        return self.done
-
-    def _apply(self, events) -> None:
-        for kind, payload in events:
-            if kind == "progress":
-                done, total = payload
-                self.reports.append((done, total))
-                name = self.camera_names[done - 1] if 0 < done <= len(self.camera_names) else ""
-                self.fraction = done / max(total, 1)
-                self.text = f"Rendering coverage: {done}/{total} cameras" + (f" ({name})" if name else "")
-                if bpy.app.background:
-                    print(f"[select views] {self.text}", flush=True)
-            elif kind == "done":
-                self.result = payload
-            elif kind == "cancelled":
-                self.cancelled = True
-            elif kind == "error":
-                self.error = payload
-        if events:
-            tag_redraw()
+    def _on_done(self, result) -> None:
+        self.result = result
 
     def _work(self, post, cancel):  # worker thread: no bpy
         from ..dresg_addon.method.views import select_active_views
@@ -190,22 +162,14 @@ class SelectionJob:
         )
 
 
-_selection: SelectionJob | None = None
-
-
-def current_selection() -> SelectionJob | None:
-    """The view selection running on a worker thread, if any (the panel shows its progress)."""
-    return _selection if _selection is not None and not _selection.done else None
-
-
-class DRESG_OT_select_views(bpy.types.Operator):
+class DRESG_OT_select_views(JobOperator, bpy.types.Operator):
     """Tick the cameras that together see the most of the splats (up to Max Views), and show each one's share"""
 
     bl_idname = "dresg.select_views"
     bl_label = "Select Views by Coverage"
     bl_options = {"REGISTER", "UNDO"}
 
-    _timer = None
+    _interval = 0.2
 
     @classmethod
     def poll(cls, context):
@@ -219,12 +183,12 @@ class DRESG_OT_select_views(bpy.types.Operator):
         if not torch_available():
             cls.poll_message_set("PyTorch is not installed (see the add-on preferences)")
             return False
-        if current_selection() is not None:
+        if SelectionJob.active() is not None:
             cls.poll_message_set("Views are being selected")
             return False
         return True
 
-    def _job(self, context) -> SelectionJob:
+    def _prepare(self, context) -> SelectionJob:
         obj, scene = context.active_object, context.scene
         objects = scene_cameras(scene)
         cameras = fitting_cameras(scene, obj, objects)
@@ -236,45 +200,27 @@ class DRESG_OT_select_views(bpy.types.Operator):
 
     def execute(self, context):
         try:
-            job = self._job(context)
+            job = self._prepare(context)
         except DresgError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        job.run_blocking()  # background mode: timers do not fire while a script runs, so no worker
-        return self._finish(context, job)
+        return self.run_here(context, job)  # background mode: timers do not fire while a script runs
 
     def invoke(self, context, event):
-        global _selection
         if bpy.app.background:
             return self.execute(context)
         try:
-            _selection = self._job(context)
+            job = self._prepare(context)
         except DresgError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        _selection.start()
-        self._timer = context.window_manager.event_timer_add(0.2, window=context.window)
-        context.window_manager.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context, event):
-        if event.type == "ESC" and event.value == "PRESS":
-            _selection.cancel.set()
-            return {"RUNNING_MODAL"}
-        if event.type != "TIMER" or not _selection.poll():
-            return {"PASS_THROUGH"}
-        context.window_manager.event_timer_remove(self._timer)
-        return self._finish(context, _selection)
-
-    def cancel(self, context):  # Blender ended the operator (file loaded, window closed)
-        _selection.cancel.set()
-        context.window_manager.event_timer_remove(self._timer)
+        return self.run_modal(context, job)
 
     def _finish(self, context, job: SelectionJob):
-        if job.cancelled:
+        if job.state is JobState.CANCELLED:
             self.report({"WARNING"}, "View selection cancelled: the ticks are unchanged")
             return {"CANCELLED"}
-        if job.error:
+        if job.state is JobState.ERROR:
             self.report({"ERROR"}, job.error)
             return {"CANCELLED"}
         by_name = {obj.name: obj for obj in scene_cameras(context.scene)}
@@ -296,6 +242,14 @@ class DRESG_OT_select_views(bpy.types.Operator):
         else:
             self.report({"INFO"}, message)
         return {"FINISHED"}
+
+
+class DRESG_OT_cancel_select_views(CancelJobOperator, bpy.types.Operator):
+    """Stop the view selection after the current camera; the ticks stay as they were"""
+
+    bl_idname = "dresg.cancel_select_views"
+    bl_label = "Cancel View Selection"
+    _job_class = SelectionJob
 
 
 class DRESG_OT_add_orbit_cameras(bpy.types.Operator):
@@ -412,4 +366,10 @@ class DRESG_OT_tick_views(bpy.types.Operator):
         return {"FINISHED"}
 
 
-classes = (DRESG_OT_select_views, DRESG_OT_add_orbit_cameras, DRESG_OT_import_cameras, DRESG_OT_tick_views)
+classes = (
+    DRESG_OT_select_views,
+    DRESG_OT_cancel_select_views,
+    DRESG_OT_add_orbit_cameras,
+    DRESG_OT_import_cameras,
+    DRESG_OT_tick_views,
+)

@@ -37,5 +37,4 @@ def addon():
     bpy.ops.wm.read_factory_settings(use_empty=True)
     module = stylize_headless.load_addon()
     yield module
-    module.operators.job.set_current(None)
-    module.unregister()
+    module.unregister()  # cancels and forgets the jobs

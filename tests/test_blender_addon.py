@@ -145,6 +145,7 @@ def _splat_object(tmp_path):
 def _states(addon, tmp_path):
     """Yield (name, apply) pairs that put the add-on in each state the panels must draw."""
     job = addon.operators.job
+    JobState = addon.operators.tasks.JobState
     scene_module = addon.dresg_addon.scene.gaussians
 
     def fake_job(obj, state, **fields):
@@ -156,22 +157,24 @@ def _states(addon, tmp_path):
             np.zeros((1, 3), np.float32),
         )
         run = job.StylizeJob(obj, empty, [], np.zeros((4, 4, 3), np.float32), bpy.context.scene.dresg.config())
-        run.state = state
+        run._enter(JobState.RUNNING)  # a state without a worker: the panels only read it
+        if state is not JobState.RUNNING:
+            run._enter(state)
         for key, value in fields.items():
             setattr(run, key, value)
-        job.set_current(run)
+        run.make_current()
 
     yield "no splat object", lambda: None
     obj = _splat_object(tmp_path)
-    yield "idle", lambda: job.set_current(None)
-    yield "running", lambda: fake_job(obj, "RUNNING", fraction=0.4, text="Stage 2/5 | fit 3/15")
-    yield "error", lambda: fake_job(obj, "ERROR", error="camera 'Camera': a very long message " * 4)
+    yield "idle", job.StylizeJob.forget
+    yield "running", lambda: fake_job(obj, JobState.RUNNING, fraction=0.4, text="Stage 2/5 | fit 3/15")
+    yield "error", lambda: fake_job(obj, JobState.ERROR, error="camera 'Camera': a very long message " * 4)
     images = {"view": {k: np.zeros((4, 4, 3), np.float32) for k in ("render", "proposal", "target", "residual")}}
-    yield "done", lambda: fake_job(obj, "DONE", text="Done in 3s", images=images)
-    yield "cancelled", lambda: fake_job(obj, "CANCELLED", text="Cancelled after 1 stage(s)")
+    yield "done", lambda: fake_job(obj, JobState.DONE, text="Done in 3s", images=images)
+    yield "cancelled", lambda: fake_job(obj, JobState.CANCELLED, text="Cancelled after 1 stage(s)")
 
     def cameras_with_coverage():
-        job.set_current(None)
+        job.StylizeJob.forget()
         bpy.ops.dresg.add_orbit_cameras(count=3)
         bpy.data.objects["orbit_001"].dresg_view.coverage = 0.42
         bpy.data.objects["orbit_001"].dresg_view.pick = 1
@@ -218,7 +221,7 @@ def test_panels_draw_in_every_state(addon, tmp_path, monkeypatch, torch_present)
         addon.ui.menus.draw_status(types.SimpleNamespace(layout=status), bpy.context)
         assert any(name == "progress" for name, _, _ in status._log) == (state == "running"), state
     assert drawn > 20
-    addon.operators.job.set_current(None)
+    addon.operators.job.StylizeJob.forget()
 
 
 def test_camera_list_shows_only_cameras(addon, tmp_path):
@@ -253,16 +256,30 @@ def test_preferences_draw_in_every_install_state(addon, monkeypatch):
     assert "dresg.install_dependencies" not in draw_prefs().operators()
     monkeypatch.setattr(dependencies, "torch_available", lambda: False)
     assert "dresg.install_dependencies" in draw_prefs().operators()
-    running = dependencies.Installer([["true"]], lines=["Downloading torch-2.13.0.whl (190 MB)"])
-    monkeypatch.setattr(dependencies, "_installer", running)
+    JobState = addon.operators.tasks.JobState
+    running = dependencies.Installer([["true"]])
+    running._enter(JobState.RUNNING)  # a state without a worker: the preferences only read it
+    running.text = "Downloading torch-2.13.0.whl (190 MB)"
+    running.make_current()
     layout = draw_prefs()
     assert "dresg.install_dependencies" not in layout.operators()
+    assert "dresg.cancel_install" in layout.operators()
     assert any("Downloading" in kw.get("text", "") for _, _, kw in layout._log)
-    failed = dependencies.Installer([["true"]], lines=["ERROR: No matching distribution"], done=True, error="x")
-    monkeypatch.setattr(dependencies, "_installer", failed)
+    failed = dependencies.Installer([["true"]])
+    failed.lines, failed.error = ["ERROR: No matching distribution"], "x"
+    failed._enter(JobState.RUNNING)
+    failed._enter(JobState.ERROR)
+    failed.make_current()
+    layout = draw_prefs()
+    assert "dresg.install_dependencies" in layout.operators() and "dresg.cancel_install" not in layout.operators()
+    assert any("No matching distribution" in kw.get("text", "") for _, _, kw in layout._log)
+    cancelled = dependencies.Installer([["true"]])
+    cancelled.cancel()  # never started: cancelled at once
+    cancelled.make_current()
     layout = draw_prefs()
     assert "dresg.install_dependencies" in layout.operators()
-    assert any("No matching distribution" in kw.get("text", "") for _, _, kw in layout._log)
+    assert any(kw.get("text") == dependencies.CANCELLED_MESSAGE for _, _, kw in layout._log)
+    dependencies.Installer.forget()
 
 
 def test_style_image_from_a_file_or_a_blender_image(addon, tmp_path):
@@ -306,25 +323,26 @@ def test_stylize_reports_input_errors_before_running(addon, tmp_path, monkeypatc
     bpy.context.scene.dresg.style_path = str(tmp_path / "style.png")
     with pytest.raises(RuntimeError, match="scale is not uniform"):
         bpy.ops.dresg.stylize()
-    assert addon.operators.job.current() is None
+    assert addon.operators.job.StylizeJob.current() is None
 
 
 def test_installer_runs_commands_and_reports_failures(addon, tmp_path):
     dependencies = addon.operators.dependencies
+    JobState = addon.operators.tasks.JobState
     ok = dependencies.Installer([[sys.executable, "-c", "print('Collecting torch'); print('Successfully installed')"]])
     ok.start()
-    ok.wait(30)
-    assert ok.done and not ok.error and ok.status == "Successfully installed"
+    assert ok.wait(30)
+    assert ok.state is JobState.DONE and not ok.error and ok.text == "Successfully installed"
     script = "import sys; print('ERROR: Could not find a version that satisfies torch'); sys.exit(3)"
     bad = dependencies.Installer([[sys.executable, "-c", script], [sys.executable, "-c", "print('never')"]])
     bad.start()
-    bad.wait(30)
-    assert bad.done and "exit code 3" in bad.error and "Could not find a version" in bad.error
+    assert bad.wait(30)
+    assert bad.state is JobState.ERROR and "exit code 3" in bad.error and "Could not find a version" in bad.error
     assert "never" not in bad.lines
     missing = dependencies.Installer([[str(tmp_path / "no-such-python")]])
     missing.start()
-    missing.wait(30)
-    assert missing.done and "cannot run" in missing.error
+    assert missing.wait(30)
+    assert missing.state is JobState.ERROR and "cannot run" in missing.error
 
     commands = dependencies.pip_commands(tmp_path / "site", index_url="https://example.invalid/simple")
     install = commands[-1]

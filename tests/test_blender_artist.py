@@ -252,20 +252,24 @@ def test_view_selection_runs_on_a_worker_thread_and_cancels(addon, tmp_path):
     cameras = views.fitting_cameras(scene, obj, objects)
     splats = addon.operators.splat_object.scene_from_object(obj)
 
+    JobState = addon.operators.tasks.JobState
     job = views.SelectionJob(splats, cameras, scene.dresg.config(), [o.name for o in objects])
     job.start()
-    job.join(120)
-    assert job.done and not job.error and not job.cancelled
+    assert job.wait(120)
+    assert job.state is JobState.DONE and not job.error
     expected = addon.dresg_addon.method.views.select_active_views(splats, cameras, scene.dresg.config())
     assert job.result.indices == expected.indices and job.result.per_view_coverage == expected.per_view_coverage
     assert job.fraction == 1.0 and job.reports == [(1, 4), (2, 4), (3, 4), (4, 4)]  # a report after each camera
 
-    stopped = views.SelectionJob(splats, cameras, scene.dresg.config(), [o.name for o in objects])
-    stopped.cancel.set()
+    many = cameras * 8  # far more renders than the worker can do before the cancel below
+    stopped = views.SelectionJob(splats, many, scene.dresg.config(), [o.name for o in objects] * 8)
+    stopped.make_current()
     stopped.start()
-    stopped.join(120)
-    assert stopped.done and stopped.cancelled and stopped.result is None
-    assert views.current_selection() is None
+    stopped.cancel()  # the engine checks before each camera's render
+    assert views.SelectionJob.active() is stopped and stopped.state is JobState.CANCELLING
+    assert stopped.wait(120)
+    assert stopped.state is JobState.CANCELLED and stopped.result is None and len(stopped.reports) < len(many)
+    assert views.SelectionJob.active() is None
 
 
 class _MainThreadOnly:
@@ -291,7 +295,7 @@ def test_every_background_job_leaves_bpy_to_the_main_thread(addon, tmp_path, mon
     objects = ops.views.scene_cameras(scene)
     cameras = ops.views.fitting_cameras(scene, obj, objects)
     splats = ops.splat_object.scene_from_object(obj)
-    for module in (ops.tasks, ops.job, ops.views, ops.dependencies, ops.splat_object, ops.stylize):
+    for module in (ops.tasks, ops.job, ops.views, ops.dependencies, ops.splat_object, ops.splat_nodes, ops.stylize):
         monkeypatch.setattr(module, "bpy", _MainThreadOnly(bpy))
     with pytest.raises(RuntimeError, match="off Blender's main thread"):  # the guard is real
         failures = []
@@ -302,8 +306,8 @@ def test_every_background_job_leaves_bpy_to_the_main_thread(addon, tmp_path, mon
 
     selection = ops.views.SelectionJob(splats, cameras, scene.dresg.config(), [o.name for o in objects])
     selection.start()
-    selection.join(120)
-    assert selection.done and not selection.error and selection.result.indices
+    assert selection.wait(120)
+    assert selection.state is ops.tasks.JobState.DONE and not selection.error and selection.result.indices
     assert selection.fraction == 1.0
 
     config = addon.dresg_addon.method.config.preset("preview", stages=2, proposal_width=32, proposal_height=24)
@@ -314,13 +318,13 @@ def test_every_background_job_leaves_bpy_to_the_main_thread(addon, tmp_path, mon
     deadline = time.monotonic() + 120
     while not run.poll() and time.monotonic() < deadline:
         time.sleep(0.02)
-    assert run.state == "DONE", run.error
+    assert run.state is ops.tasks.JobState.DONE, run.error
     assert run.stages_applied >= 1 and run.messages and run.fraction == 1.0
 
     installer = ops.dependencies.Installer([[sys.executable, "-c", "print('Collecting torch')"]])
     installer.start()
-    installer.wait(30)
-    assert installer.done and not installer.error and installer.lines == ["Collecting torch"]
+    assert installer.wait(30)
+    assert installer.state is ops.tasks.JobState.DONE and installer.lines == ["Collecting torch"]
 
 
 def _catch(function, failures: list) -> None:

@@ -175,7 +175,7 @@ def _synthetic_scene(n=3, color=(0.8, 0.3, 0.1), spread=1.0, seed=0) -> Gaussian
 
 @pytest.mark.parametrize("shape", ["ICO", "DISK"])
 def test_preview_instances_follow_scale_and_rotation(addon, tmp_path, shape):
-    from stylize_gaussians.operators.splat_object import ensure_shape_object
+    from stylize_gaussians.operators.splat_nodes import ensure_shape_object
 
     scene = _synthetic_scene(n=4)
     write_scene(scene, tmp_path / "s.ply")
@@ -211,13 +211,8 @@ def test_preview_instances_follow_scale_and_rotation(addon, tmp_path, shape):
 
 
 def test_display_options_hide_splats_but_keep_the_data(addon, tmp_path):
-    from stylize_gaussians.operators.splat_object import (
-        INPUT_MAX_SPLATS,
-        INPUT_MIN_OPACITY,
-        INPUT_SOLID,
-        set_modifier_input,
-        splat_modifier,
-    )
+    from stylize_gaussians.operators.splat_nodes import INPUT_MAX_SPLATS, INPUT_MIN_OPACITY, INPUT_SOLID
+    from stylize_gaussians.operators.splat_object import set_modifier_input, splat_modifier
 
     scene = _synthetic_scene(n=200)
     scene.opacity_logits[:50] = -6.0  # opacity 0.0025
@@ -240,7 +235,8 @@ def render_workbench(path, width=96, height=72) -> np.ndarray:
     """Workbench render (flat light, attribute colours, Standard view) -> [H, W, 4] in [0, 1].
 
     Soft splats (EEVEE's preview) are turned off: Workbench shows the realized splats' colours."""
-    from stylize_gaussians.operators.splat_object import INPUT_SOFT, set_modifier_input, splat_modifier
+    from stylize_gaussians.operators.splat_nodes import INPUT_SOFT
+    from stylize_gaussians.operators.splat_object import set_modifier_input, splat_modifier
 
     scene = bpy.context.scene
     for obj in scene.objects:

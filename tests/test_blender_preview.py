@@ -52,15 +52,14 @@ def test_workbench_f12_shows_the_splat_colours_with_the_import_defaults(addon, s
 def test_render_settings_are_put_back_after_each_render(addon, tmp_path):
     """The handlers change the splat objects' modifiers for a render only: the file keeps the user's settings."""
     from stylize_gaussians.operators.render_setup import WORKBENCH_CORE_ALPHA
-    from stylize_gaussians.operators.splat_object import (
+    from stylize_gaussians.operators.splat_nodes import (
         INPUT_CORE_ALPHA,
         INPUT_PIXEL,
         INPUT_PIXEL_WIDTH,
         INPUT_SOFT,
         INPUT_SOLID,
-        modifier_input,
-        splat_modifier,
     )
+    from stylize_gaussians.operators.splat_object import modifier_input, splat_modifier
 
     thin = blender_preview.thin_splats_ply(tmp_path / "thin.ply", n=200)
     assert bpy.ops.dresg.import_splats(filepath=str(thin), axis_conversion="NONE") == {"FINISHED"}
@@ -156,7 +155,7 @@ def test_orthographic_renders_get_the_low_pass_as_a_pixel_width(addon, tmp_path)
     of sub-pixel sprinkles matches a perspective camera far away with a long lens (nearly orthographic) framing
     the same, which the engine-checked perspective low-pass draws; without the low-pass it is sparse dots."""
     from mathutils import Vector
-    from stylize_gaussians.operators.splat_object import INPUT_PIXEL, INPUT_PIXEL_WIDTH
+    from stylize_gaussians.operators.splat_nodes import INPUT_PIXEL, INPUT_PIXEL_WIDTH
 
     thin = blender_preview.thin_splats_ply(tmp_path / "thin.ply", n=800)
     assert bpy.ops.dresg.import_splats(filepath=str(thin), axis_conversion="NONE") == {"FINISHED"}

@@ -48,7 +48,7 @@ def test_the_poll_loop_shows_a_rising_bar_and_estimates_near_the_runs_time(addon
         if ended:
             break
         time.sleep(0.005)
-    assert run.state == "DONE", run.error
+    assert run.state is ops.tasks.JobState.DONE, run.error
     seconds = run.seconds
     fractions = [fraction for _, fraction, _, _ in seen]
     assert all(b >= a for a, b in zip(fractions, fractions[1:])), fractions
@@ -77,7 +77,7 @@ def test_the_report_after_a_selection_run_counts_the_selection(addon, tmp_path, 
     settings.selection = "SELECTED"
     capfd.readouterr()
     assert bpy.ops.dresg.stylize() == {"FINISHED"}
-    run = addon.operators.job.current()
+    run = addon.operators.job.StylizeJob.current()
     assert run.n_selected == left.sum() and run.n_stylized is not None
     assert 0.9 * left.sum() <= run.n_stylized <= left.sum()
     if run.n_stylized == left.sum():
@@ -91,7 +91,7 @@ def test_the_report_after_a_selection_run_counts_the_selection(addon, tmp_path, 
 
     settings.selection = "ALL"
     assert bpy.ops.dresg.stylize() == {"FINISHED"}
-    everything = addon.operators.job.current()
+    everything = addon.operators.job.StylizeJob.current()
     assert everything.n_selected == len(left) and everything.summary().startswith("Stylized ")
     assert "selected" not in everything.summary()
 

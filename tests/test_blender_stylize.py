@@ -59,7 +59,8 @@ def render_mean_colour(path) -> np.ndarray:
     scene.camera = bpy.data.objects["orbit_000"]
     scene.render.engine = "BLENDER_WORKBENCH"  # shows the realized splats, not the soft ones
     from stylize_gaussians.operators import render_setup
-    from stylize_gaussians.operators.splat_object import INPUT_SOFT, set_modifier_input, splat_modifier
+    from stylize_gaussians.operators.splat_nodes import INPUT_SOFT
+    from stylize_gaussians.operators.splat_object import set_modifier_input, splat_modifier
 
     for obj in scene.objects:
         if splat_modifier(obj) is not None:
@@ -104,9 +105,10 @@ def test_background_stylize_changes_colours_only(luigi, tmp_path):
     assert bpy.app.background
     assert bpy.ops.dresg.stylize() == {"FINISHED"}  # background mode: synchronous
     from stylize_gaussians.operators import job
+    from stylize_gaussians.operators.tasks import JobState
 
-    run = job.current()
-    assert run.state == "DONE" and run.stages_applied >= 1
+    run = job.StylizeJob.current()
+    assert run.state is JobState.DONE and run.stages_applied >= 1
     sh_dc = attribute(obj, sm.SH_DC)
     assert np.abs(sh_dc - before[sm.SH_DC]).mean() > 1e-3
     assert np.isfinite(sh_dc).all()
@@ -137,16 +139,16 @@ def test_background_stylize_changes_colours_only(luigi, tmp_path):
 
 
 def test_threaded_run_cancels_and_restores(luigi):
-    from stylize_gaussians.operators import job
     from stylize_gaussians.operators.splat_object import scene_from_object
     from stylize_gaussians.operators.stylize import prepare_job
+    from stylize_gaussians.operators.tasks import JobState
 
     obj = luigi
     original = scene_from_object(obj)
     settings = bpy.context.scene.dresg
     settings.stages, settings.optimize_geometry = 6, True
     run, _ = prepare_job(bpy.context)
-    job.set_current(run)
+    run.make_current()
     run.start()
     deadline = time.monotonic() + 300
     while run.stages_applied < 1 and run.running and time.monotonic() < deadline:
@@ -157,9 +159,9 @@ def test_threaded_run_cancels_and_restores(luigi):
     cancelled_at = time.monotonic()
     while not run.poll():
         time.sleep(0.02)
-    run.join(30)
+    run.wait(30)
     print(f"stopped {time.monotonic() - cancelled_at:.2f} s after cancel")
-    assert run.state == "CANCELLED" and run.stages_applied < 6
+    assert run.state is JobState.CANCELLED and run.stages_applied < 6
 
     # One consistent stage: display colours match the stored coefficients, geometry within its bounds.
     sh_dc, opacity = attribute(obj, sm.SH_DC), attribute(obj, sm.OPACITY)
@@ -178,13 +180,15 @@ def test_threaded_run_cancels_and_restores(luigi):
 
 def test_worker_errors_reach_the_job_and_the_report(luigi, tmp_path):
     from stylize_gaussians.operators import job
+    from stylize_gaussians.operators.tasks import JobState
 
     settings = bpy.context.scene.dresg
     settings.proposal = "sd15"
     missing = tmp_path / "no-model"
     with pytest.raises(RuntimeError, match="no-model"):
         bpy.ops.dresg.stylize(model_path=str(missing))
-    assert job.current().state == "ERROR" and "no-model" in job.current().error
+    run = job.StylizeJob.current()
+    assert run.state is JobState.ERROR and "no-model" in run.error
     np.testing.assert_array_equal(attribute(luigi, sm.SH_DC), attribute(luigi, sm.SH_DC_ORIGINAL))
 
 

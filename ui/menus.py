@@ -5,8 +5,8 @@ The status bar shows the progress of a running stylization or view selection.
 
 import bpy
 
-from ..operators import job
-from ..operators.views import current_selection
+from ..operators.job import StylizeJob
+from ..operators.views import SelectionJob
 
 OPERATORS = (
     ("dresg.import_splats", "IMPORT"),
@@ -18,6 +18,7 @@ OPERATORS = (
     ("dresg.open_view_images", "IMAGE_DATA"),
     (None, None),
     ("dresg.select_views", "VIEWZOOM"),
+    ("dresg.cancel_select_views", "CANCEL"),
     ("dresg.add_orbit_cameras", "CAMERA_DATA"),
     ("dresg.import_cameras", "OUTLINER_OB_CAMERA"),
 )
@@ -49,10 +50,10 @@ def draw_object_menu(self, context):
 
 
 def draw_status(self, context):
-    current = job.current()
-    if current is not None and current.running:
+    current = StylizeJob.active()
+    if current is not None:
         self.layout.progress(factor=current.fraction, type="BAR", text=f"Stylize Gaussians: {current.text}")
-    selecting = current_selection()
+    selecting = SelectionJob.active()
     if selecting is not None:
         self.layout.progress(factor=selecting.fraction, type="BAR", text=f"Select Views: {selecting.text}")
 

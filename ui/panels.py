@@ -5,19 +5,18 @@ import textwrap
 import bpy
 
 from ..operators import dependencies, job
-from ..operators.splat_object import (
+from ..operators.splat_nodes import (
     INPUT_MAX_SPLATS,
     INPUT_MIN_OPACITY,
     INPUT_SCALE,
     INPUT_SHAPE,
     INPUT_SOFT,
     INPUT_SOLID,
-    has_stylized_colors,
-    is_splat_object,
-    splat_modifier,
 )
+from ..operators.splat_object import has_stylized_colors, is_splat_object, splat_modifier
 from ..operators.stylize import addon_preferences
-from ..operators.views import current_selection, fit_size, scene_cameras
+from ..operators.tasks import JobState
+from ..operators.views import SelectionJob, fit_size, scene_cameras
 
 CATEGORY = "Stylize Gaussians"
 
@@ -91,7 +90,7 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
             prefs = addon_preferences(context)
             draw_dependencies(layout, prefs.index_url if prefs is not None else "")
 
-        current = job.current()
+        current = job.StylizeJob.current()
         mine = current is not None and current.concerns(obj)
         if current is not None and current.running:
             if not mine:
@@ -102,14 +101,14 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
             row = layout.row()
             row.scale_y = 1.5
             row.operator("dresg.stylize", icon="BRUSH_DATA")
-        if mine and current.state == "ERROR":
+        if mine and current.state is JobState.ERROR:
             box = layout.box()
             box.alert = True
             _wrapped(box, f"Stylize Gaussians failed: {current.error}", icon="ERROR")
             box.operator("dresg.dismiss", icon="X")
         elif mine and not current.running:
             row = layout.row()
-            row.label(text=current.text, icon="INFO" if current.state == "DONE" else "CANCEL")
+            row.label(text=current.text, icon="INFO" if current.state is JobState.DONE else "CANCEL")
             row.operator("dresg.dismiss", text="", icon="X")
         if mine and current.images:
             layout.operator("dresg.open_view_images", icon="IMAGE_DATA")
@@ -188,9 +187,10 @@ class DRESG_PT_views(ChildPanel, bpy.types.Panel):
             row.operator("dresg.tick_views", text="None").use = False
             ticked = sum(obj.dresg_view.use for obj in cameras)
             layout.label(text=f"{ticked} of {len(cameras)} ticked" if ticked else "None ticked: all cameras are used")
-            selecting = current_selection()
+            selecting = SelectionJob.active()
             if selecting is not None:
                 layout.progress(factor=selecting.fraction, type="BAR", text=f"{selecting.text} (Esc cancels)")
+                layout.operator("dresg.cancel_select_views", icon="CANCEL")
             else:
                 layout.operator("dresg.select_views", icon="VIEWZOOM")
         else:

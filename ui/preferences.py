@@ -3,25 +3,30 @@
 import bpy
 
 from ..operators import ADDON_PACKAGE, dependencies
+from ..operators.tasks import JobState
 
 
 def draw_dependencies(layout, index_url: str = "") -> None:
-    """PyTorch status with the install button, its progress or its error (preferences and the main panel)."""
-    installer = dependencies.current_installer()
+    """PyTorch status with the install button, its progress and Cancel, or how the last install ended (preferences
+    and the main panel)."""
+    installer = dependencies.Installer.current()
     box = layout.box()
     if dependencies.torch_available():
         box.label(text="PyTorch is available", icon="CHECKMARK")
         return
-    if installer is not None and not installer.done:
+    if installer is not None and installer.running:
         box.label(text=f"Installing {dependencies.TORCH_REQUIREMENT}...", icon="SORTTIME")
-        box.label(text=installer.status[-90:])
+        box.label(text=installer.text[-90:])
+        box.operator("dresg.cancel_install", icon="CANCEL")
         return
-    if installer is not None and installer.error:
+    if installer is not None and installer.state is JobState.ERROR:
         column = box.column(align=True)
         column.alert = True
         column.label(text="Installing PyTorch failed:", icon="ERROR")
         for line in installer.lines[-4:]:
             column.label(text=line[-90:])
+    elif installer is not None and installer.state is JobState.CANCELLED:
+        box.label(text=installer.text, icon="CANCEL")
     else:
         box.label(text="Stylizing needs PyTorch (import, export and viewing do not)", icon="INFO")
     operator = box.operator("dresg.install_dependencies", icon="IMPORT")
