@@ -1,7 +1,6 @@
 """Stylize Gaussians end to end in the bpy module: background runs, the worker thread, cancel, restore,
 view selection and the headless script. Small settings (tiny renders, few steps) keep it CPU-fast."""
 
-import importlib.util
 import re
 import subprocess
 import sys
@@ -17,8 +16,6 @@ from dresg_addon.util.imageio import read_image
 
 bpy = pytest.importorskip("bpy")
 pytest.importorskip("torch")
-if importlib.util.find_spec("dresg_addon.method.loop") is None:
-    pytest.skip("needs dresg_addon/method/loop.py (stylize)", allow_module_level=True)
 pytestmark = pytest.mark.blender
 REPO = Path(__file__).resolve().parents[1]
 SETTINGS = {  # a quick run: 2 stages of 3 fit steps on 64x48 renders of 2 views
