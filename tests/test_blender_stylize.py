@@ -205,6 +205,7 @@ def test_select_views_by_coverage_ticks_the_engine_choice(luigi):
     np.testing.assert_allclose([obj.dresg_view.coverage for obj in objects], expected.per_view_coverage, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_headless_script_with_a_blend_file(addon, shared_data, tmp_path):
     # A .blend with two cameras framing Luigi (imported with the OpenCV conversion, as the script does).
     scene = bpy.context.scene
@@ -239,6 +240,7 @@ def test_headless_script_with_a_blend_file(addon, shared_data, tmp_path):
     assert bad.returncode == 2 and "nope.ply" in bad.stderr
 
 
+@pytest.mark.slow
 def test_headless_script_without_a_blend_file(shared_data, tmp_path):
     from dresg_addon.scene.camera_io import write_cameras_json
     from dresg_addon.scene.orbit import orbit_cameras

@@ -206,6 +206,7 @@ def test_evaluator_fast_path_matches_full_renders():
     assert -1.0 <= m["texture_kept"] < 1.0 and 0.0 < m["shapes"] < 1.0
 
 
+@pytest.mark.slow
 def test_report_command_writes_four_sections_and_plots(tmp_path):
     from dresg_addon.cli import main
     from dresg_addon.evaluation.report import draw_plots
