@@ -124,6 +124,7 @@ def _recorded_run(monkeypatch, stroke_size: float):
     return seen
 
 
+@pytest.mark.slow
 def test_stroke_size_two_gives_the_backend_a_painting_twice_the_size(monkeypatch):
     one, two = _recorded_run(monkeypatch, 1.0), _recorded_run(monkeypatch, 2.0)
     assert one["contents"] == two["contents"] == (3, 24, 32)  # the views stay at the proposal size

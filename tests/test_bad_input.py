@@ -227,6 +227,7 @@ def test_reading_and_writing_corrupt_scenes_raises_no_numpy_warnings(tmp_path):
 # --- renders larger than the memory there is --------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_render_that_cannot_fit_in_memory_is_refused_before_allocating(monkeypatch):
     import torch
 

@@ -31,6 +31,7 @@ def test_quality_columns_include_texture_kept_and_shapes():
     assert "texture kept" in quality.__doc__ and "shapes" in quality.__doc__
 
 
+@pytest.mark.slow
 def test_quality_evaluate_reports_every_measured_column(case):
     scene, cameras, style = case
     recoloured = replace(scene, sh_dc=scene.sh_dc[::-1].copy())

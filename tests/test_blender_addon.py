@@ -384,6 +384,7 @@ def test_import_export_and_view_work_without_torch(shared_data, tmp_path):
     assert (tmp_path / "out.ply").stat().st_size == luigi.stat().st_size
 
 
+@pytest.mark.slow
 def test_extension_zip_builds_and_installs(tmp_path):
     """Build with Blender's extension tool, install the zip into a fresh user folder, enable it."""
     build = subprocess.run(

@@ -334,6 +334,7 @@ def _catch(function, failures: list) -> None:
         failures.append(error)
 
 
+@pytest.mark.slow
 def test_two_paintings_on_two_selections_and_restore_per_selection(addon, tmp_path):
     """Issue 18: a run on a vertex group, then one on the Edit Mode selection with another painting: each
     changes only its splats and the second keeps the first's colours; Restore works per selection and for

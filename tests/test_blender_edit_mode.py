@@ -52,6 +52,7 @@ def _leave_edit_mode(obj) -> None:
     assert bpy.ops.object.mode_set(mode="OBJECT") == {"FINISHED"}
 
 
+@pytest.mark.slow
 def test_stylize_restore_export_and_views_on_the_edit_mode_selection(addon, tmp_path, capfd):
     """With the object in Edit Mode and half its splats selected there: Stylize (Selected Splats) changes only
     those, and the object stays in Edit Mode with the same selection; Select Views and Export work there; Restore

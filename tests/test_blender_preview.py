@@ -12,6 +12,7 @@ pytestmark = pytest.mark.blender
 import blender_preview  # noqa: E402  (bench/, on pytest's pythonpath; needs bpy)
 
 
+@pytest.mark.slow
 def test_eevee_soft_splats_look_like_the_engine_render(addon, shared_data):
     result = blender_preview.compare(
         shared_data("scenes/luigi.ply"), "Y_UP_TO_BLENDER", width=160, height=120, samples=1, view=1
@@ -22,6 +23,7 @@ def test_eevee_soft_splats_look_like_the_engine_render(addon, shared_data):
     assert result["mean_colour_error"] <= 0.08, result["mean_colour_error"]
 
 
+@pytest.mark.slow
 def test_eevee_draws_splats_thinner_than_a_pixel_with_the_rasterizers_low_pass(addon, tmp_path):
     """Sprinkles under a pixel wide: without the 0.3 px^2 low-pass EEVEE draws them thinner and fainter."""
     thin = blender_preview.thin_splats_ply(tmp_path / "thin.ply", n=1500)  # n and size keep llvmpipe under a minute
@@ -49,6 +51,7 @@ def test_workbench_f12_shows_the_splat_colours_with_the_import_defaults(addon, s
     assert result["mean_colour_error"] <= 0.1, result["mean_colour_error"]
 
 
+@pytest.mark.slow
 def test_render_settings_are_put_back_after_each_render(addon, tmp_path):
     """The handlers change the splat objects' modifiers for a render only: the file keeps the user's settings."""
     from stylize_gaussians.operators.render_setup import WORKBENCH_CORE_ALPHA
@@ -150,6 +153,7 @@ def _eevee_rgba(scene, path) -> np.ndarray:
     return read_image(str(path))
 
 
+@pytest.mark.slow
 def test_orthographic_renders_get_the_low_pass_as_a_pixel_width(addon, tmp_path):
     """An orthographic camera's pixels do not grow with depth: the low-pass comes from its pixel width. Its render
     of sub-pixel sprinkles matches a perspective camera far away with a long lens (nearly orthographic) framing

@@ -65,6 +65,7 @@ def test_the_poll_loop_shows_a_rising_bar_and_estimates_near_the_runs_time(addon
     assert losses and all(loss < 1 for loss in losses)
 
 
+@pytest.mark.slow
 def test_the_report_after_a_selection_run_counts_the_selection(addon, tmp_path, capfd):
     obj = _import(tmp_path, _scene(n=300, spread=0.5))
     bpy.ops.dresg.add_orbit_cameras(count=3)

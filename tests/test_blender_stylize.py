@@ -1,7 +1,6 @@
 """Stylize Gaussians end to end in the bpy module: background runs, the worker thread, cancel, restore,
 view selection and the headless script. Small settings (tiny renders, few steps) keep it CPU-fast."""
 
-import importlib.util
 import re
 import subprocess
 import sys
@@ -17,8 +16,6 @@ from dresg_addon.util.imageio import read_image
 
 bpy = pytest.importorskip("bpy")
 pytest.importorskip("torch")
-if importlib.util.find_spec("dresg_addon.method.loop") is None:
-    pytest.skip("needs dresg_addon/method/loop.py (stylize)", allow_module_level=True)
 pytestmark = pytest.mark.blender
 REPO = Path(__file__).resolve().parents[1]
 SETTINGS = {  # a quick run: 2 stages of 3 fit steps on 64x48 renders of 2 views
@@ -212,6 +209,7 @@ def test_select_views_by_coverage_ticks_the_engine_choice(luigi):
     np.testing.assert_allclose([obj.dresg_view.coverage for obj in objects], expected.per_view_coverage, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_headless_script_with_a_blend_file(addon, shared_data, tmp_path):
     # A .blend with two cameras framing Luigi (imported with the OpenCV conversion, as the script does).
     scene = bpy.context.scene
@@ -246,6 +244,7 @@ def test_headless_script_with_a_blend_file(addon, shared_data, tmp_path):
     assert bad.returncode == 2 and "nope.ply" in bad.stderr
 
 
+@pytest.mark.slow
 def test_headless_script_without_a_blend_file(shared_data, tmp_path):
     from dresg_addon.scene.camera_io import write_cameras_json
     from dresg_addon.scene.orbit import orbit_cameras

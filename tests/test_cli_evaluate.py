@@ -73,6 +73,7 @@ def assert_no_nan(value):
     json.dumps(value, allow_nan=False)
 
 
+@pytest.mark.slow
 def test_evaluate_end_to_end(files, capsys):
     report, table = evaluate(files, capsys, "--orbit", "6", "--log", str(files / "log.jsonl"), "--fps-repeats", "1")
     assert_no_nan(report)
@@ -110,6 +111,7 @@ def test_evaluate_end_to_end(files, capsys):
     assert "mean" in table and "short-term (gap 1)" in table and "FPS" in table and "stylize: 5.5 s" in table
 
 
+@pytest.mark.slow
 def test_evaluate_base_against_itself(files, capsys):
     report, _ = evaluate(files, capsys, "--orbit", "3", "--fps-repeats", "0", stylized="base.ply")
     assert report["efficiency"]["render"] is None and report["efficiency"]["stylize_log"] is None
@@ -121,6 +123,7 @@ def test_evaluate_base_against_itself(files, capsys):
     assert report["consistency"]["stylized"] == report["consistency"]["base"]
 
 
+@pytest.mark.slow
 def test_evaluate_camera_file_order_and_empty_views(files, capsys, tmp_path):
     cameras = orbit_cameras(textured_sphere(), 3, width=40, height=32)
     # A camera looking away from the scene: an empty render that must give defined values.

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import subprocess
 import sys
@@ -12,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon import cli
+from dresg_addon.cli import main
 from dresg_addon.commands._common import parse_background
 from dresg_addon.commands.render import output_stems
 from dresg_addon.raster import RasterSettings, render_scene
@@ -25,16 +24,6 @@ from dresg_addon.util.errors import ConfigError
 from dresg_addon.util.imageio import read_image
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture
-def main(monkeypatch):
-    """``cli.main`` over the registered commands that exist yet (others are written in parallel)."""
-    registered = tuple(
-        name for name in cli.COMMAND_MODULES if importlib.util.find_spec(f"dresg_addon.commands.{name}") is not None
-    )
-    monkeypatch.setattr(cli, "COMMAND_MODULES", registered)
-    return cli.main
 
 
 def small_scene(n=300, seed=0) -> GaussianScene:
@@ -80,7 +69,7 @@ def as_8bit(values):
     return np.round(np.clip(values, 0.0, 1.0) * 255.0)
 
 
-def test_exr_and_png_hold_render_scene_values(main, inputs, tmp_path, capsys):
+def test_exr_and_png_hold_render_scene_values(inputs, tmp_path, capsys):
     scene_path, cameras_path = inputs
     exr_dir, png_dir = tmp_path / "exr", tmp_path / "png"
     base = ["render", str(scene_path), "--cameras", str(cameras_path), "--alpha", "--out"]
@@ -120,7 +109,7 @@ def test_exr_and_png_hold_render_scene_values(main, inputs, tmp_path, capsys):
     assert np.abs(expected(dc_only, front)[0] - read_image(exr_dir / "views_front.exr")).max() > 1e-3
 
 
-def test_background_near_and_scale(main, inputs, tmp_path):
+def test_background_near_and_scale(inputs, tmp_path):
     scene_path, cameras_path = inputs
     out = tmp_path / "out"
     args = ["render", str(scene_path), "--cameras", str(cameras_path), "--out", str(out), "--format", "exr"]
@@ -138,7 +127,7 @@ def test_background_near_and_scale(main, inputs, tmp_path):
     assert np.abs(read_image(out / "views_front.exr") - full).max() > 1e-2
 
 
-def test_orbit_mode(main, tmp_path, capsys):
+def test_orbit_mode(tmp_path, capsys):
     scene_path = tmp_path / "scene.ply"
     write_scene(small_scene(), scene_path)
     out = tmp_path / "orbit"
@@ -153,7 +142,7 @@ def test_orbit_mode(main, tmp_path, capsys):
     assert len(capsys.readouterr().out.strip().splitlines()) == 4
 
 
-def test_drop_invalid(main, tmp_path, capsys):
+def test_drop_invalid(tmp_path, capsys):
     scene_path = tmp_path / "bad.ply"
     write_scene(small_scene(50), scene_path)
     # The writer refuses NaN, so put one into splat 7's y by hand (binary float32 rows).
@@ -200,7 +189,7 @@ BAD_OPTIONS = {
 
 
 @pytest.mark.parametrize("case", sorted(BAD_OPTIONS))
-def test_errors_are_one_line_with_exit_2(main, inputs, tmp_path, capsys, case):
+def test_errors_are_one_line_with_exit_2(inputs, tmp_path, capsys, case):
     scene_path, _ = inputs
     bad_json = tmp_path / "bad.json"
     bad_json.write_text("[{", encoding="utf-8")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -12,26 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon import cli
+from dresg_addon.cli import main
 from dresg_addon.scene.gaussians import GaussianScene
 from dresg_addon.scene.io import SceneFormat, read_scene, read_scene_detailed, write_scene
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def command_exists(name: str) -> bool:
-    return importlib.util.find_spec(f"dresg_addon.commands.{name}") is not None
-
-
-@pytest.fixture
-def main(monkeypatch):
-    """``cli.main`` over the registered commands that exist yet (others are written in parallel)."""
-    registered = tuple(name for name in cli.COMMAND_MODULES if command_exists(name))
-    for name in ("info", "convert"):
-        if name not in registered:
-            registered += (name,)
-    monkeypatch.setattr(cli, "COMMAND_MODULES", registered)
-    return cli.main
 
 
 def scene(n=500, degree=1, seed=0) -> GaussianScene:
@@ -62,7 +46,7 @@ def one_error_line(captured) -> str:
     return lines[0]
 
 
-def test_info_reports_the_statistics(main, ply, capsys):
+def test_info_reports_the_statistics(ply, capsys):
     assert main(["info", str(ply)]) == 0
     out = capsys.readouterr().out
     s = read_scene(ply)
@@ -76,7 +60,7 @@ def test_info_reports_the_statistics(main, ply, capsys):
     assert f"min {scales.min():.4g}" in out and f"max {scales.max():.4g}" in out
 
 
-def test_info_json_matches_numpy(main, ply, capsys):
+def test_info_json_matches_numpy(ply, capsys):
     assert main(["info", str(ply), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     s = read_scene(ply)
@@ -93,7 +77,7 @@ def test_info_json_matches_numpy(main, ply, capsys):
     assert summary["file_bytes"] == ply.stat().st_size
 
 
-def test_info_on_real_files(main, shared_data, capsys):
+def test_info_on_real_files(shared_data, capsys):
     assert main(["info", str(shared_data("scenes/bonsai-7k-mini.compressed.ply")), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["format"] == SceneFormat.COMPRESSED_PLY.value and summary["splats"] == 272956
@@ -101,7 +85,7 @@ def test_info_on_real_files(main, shared_data, capsys):
     assert "SH degree:       3" in capsys.readouterr().out
 
 
-def test_info_non_finite_and_drop_invalid(main, tmp_path, capsys):
+def test_info_non_finite_and_drop_invalid(tmp_path, capsys):
     path = tmp_path / "bad.ply"
     s = scene()
     write_scene(s, path)
@@ -119,7 +103,7 @@ def test_info_non_finite_and_drop_invalid(main, tmp_path, capsys):
     assert "dropped 1 splats" in captured.err and "499" in captured.out
 
 
-def test_info_extreme_values_stay_finite(main, tmp_path, capsys):
+def test_info_extreme_values_stay_finite(tmp_path, capsys):
     s = scene(n=50, degree=0)
     s.log_scales[0] = 100.0  # exp overflows float32
     s.opacity_logits[:2] = [-1000.0, 1000.0]
@@ -136,7 +120,7 @@ def test_info_extreme_values_stay_finite(main, tmp_path, capsys):
     assert np.isfinite(back.log_scales).all() and back.opacities[0] < 1e-5 and back.opacities[1] > 1 - 1e-5
 
 
-def test_errors_are_one_line_with_exit_code_2(main, tmp_path, capsys):
+def test_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
     assert main(["info", str(tmp_path / "missing.ply")]) == 2
     assert "file not found" in one_error_line(capsys.readouterr())
     (tmp_path / "empty.splat").write_bytes(b"")
@@ -149,7 +133,7 @@ def test_errors_are_one_line_with_exit_code_2(main, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("suffix", [".splat", ".compressed.ply", ".ply"])
-def test_convert_formats(main, ply, tmp_path, capsys, suffix):
+def test_convert_formats(ply, tmp_path, capsys, suffix):
     out = tmp_path / f"out{suffix}"
     assert main(["convert", str(ply), str(out)]) == 0
     captured = capsys.readouterr()
@@ -166,7 +150,7 @@ def test_convert_formats(main, ply, tmp_path, capsys, suffix):
         assert out.read_bytes() == ply.read_bytes() and captured.err == ""
 
 
-def test_convert_back_and_forth_keeps_positions(main, ply, tmp_path):
+def test_convert_back_and_forth_keeps_positions(ply, tmp_path):
     assert main(["convert", str(ply), str(tmp_path / "a.splat")]) == 0
     assert main(["convert", str(tmp_path / "a.splat"), str(tmp_path / "b.ply")]) == 0
     back = read_scene(tmp_path / "b.ply")
@@ -174,7 +158,7 @@ def test_convert_back_and_forth_keeps_positions(main, ply, tmp_path):
     assert back.normals is None and back.sh_degree == 0
 
 
-def test_convert_in_place_and_over_another_file(main, ply, tmp_path):
+def test_convert_in_place_and_over_another_file(ply, tmp_path):
     other = tmp_path / "other.ply"
     write_scene(scene(n=3, degree=0, seed=5), other)
     before = ply.read_bytes()
@@ -184,7 +168,7 @@ def test_convert_in_place_and_over_another_file(main, ply, tmp_path):
     assert ply.read_bytes() == before
 
 
-def test_convert_bad_output_extension_fails_before_reading(main, tmp_path, capsys):
+def test_convert_bad_output_extension_fails_before_reading(tmp_path, capsys):
     assert main(["convert", str(tmp_path / "missing.ply"), str(tmp_path / "out.obj")]) == 2
     assert "unknown output extension '.obj'" in one_error_line(capsys.readouterr())
 
@@ -193,7 +177,7 @@ def test_convert_bad_output_extension_fails_before_reading(main, tmp_path, capsy
     ("command", "options"),
     [("info", ["--drop-invalid", "--json", "SCENE"]), ("convert", ["--drop-invalid", "IN", "OUT"])],
 )
-def test_help_explains_every_option(main, capsys, command, options):
+def test_help_explains_every_option(capsys, command, options):
     with pytest.raises(SystemExit) as exit_info:
         main([command, "--help"])
     assert exit_info.value.code == 0
@@ -204,20 +188,8 @@ def test_help_explains_every_option(main, capsys, command, options):
 
 
 def python_m(args: list[str]) -> subprocess.CompletedProcess:
-    """``python -m dresg_addon ARGS``; while some registered command is not written yet, the same
-    ``__main__`` runs through runpy over the commands that exist."""
-    registered = [name for name in cli.COMMAND_MODULES if command_exists(name)]
-    if registered == list(cli.COMMAND_MODULES) and "info" in registered:
-        command = [sys.executable, "-m", "dresg_addon", *args]
-    else:
-        names = tuple(registered + [name for name in ("info", "convert") if name not in registered])
-        code = (
-            "import runpy; import dresg_addon.cli as cli; "
-            f"cli.COMMAND_MODULES = {names!r}; "
-            "runpy.run_module('dresg_addon', run_name='__main__', alter_sys=True)"
-        )
-        command = [sys.executable, "-c", code, *args]
     env = {**os.environ, "PYTHONPATH": str(REPO)}
+    command = [sys.executable, "-m", "dresg_addon", *args]
     return subprocess.run(command, capture_output=True, text=True, env=env, timeout=120)
 
 

@@ -140,6 +140,7 @@ def test_geometry_on_cpu_says_what_it_costs(files, tmp_path, capsys):
     assert "geometry offsets are on" not in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_stylize_as_a_module_with_ablation_switches_and_quiet(files, tmp_path):
     out = tmp_path / "switches.ply"
     args = _stylize_args(files, out, "--no-feedback", "--no-pcgrad", "--schedule", "triangle", "--views", "0,2")

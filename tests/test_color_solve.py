@@ -167,6 +167,7 @@ def test_non_finite_targets_and_bad_settings_are_refused(small):
             ColorSolveSettings(**bad)
 
 
+@pytest.mark.slow
 def test_an_anchored_solve_reaches_the_dense_proximal_optimum_and_keeps_what_the_views_barely_see(small):
     """min ||A x - b||^2 + mu e_bar ||x - x0||^2 over the box, against FISTA on the stacked dense problem."""
     _, views = small
@@ -232,14 +233,19 @@ def blend_variance(views: LinearViews, colors: torch.Tensor) -> float:
     return total
 
 
-def test_layer_agreement_reaches_the_dense_optimum_and_pulls_blended_splats_to_one_colour(small):
+def _layer_agreement_case(views):
+    rng = np.random.default_rng(11)
+    targets = [torch.from_numpy(rng.uniform(0, 1, (t.shape[0], 3)).astype(np.float32)) for t in views.constants]
+    return targets, torch.full((80, 3), 0.5), ColorSolveSettings(tolerance=1e-6, max_rounds=40, layer_agreement=1.0)
+
+
+@pytest.mark.slow
+def test_layer_agreement_reaches_the_dense_optimum(small):
     """min ||A x - b||^2 + beta sum_p sum_i w_pi ||x_i - mean_p||^2 over the box, against FISTA on the dense
     quadratic (A^T A + beta (D - sum_v W_v^T diag(1 / alpha_v) W_v))."""
     _, views = small
-    rng = np.random.default_rng(11)
-    targets = [torch.from_numpy(rng.uniform(0, 1, (t.shape[0], 3)).astype(np.float32)) for t in views.constants]
-    start = torch.full((80, 3), 0.5)
-    beta = 1.0
+    targets, start, settings = _layer_agreement_case(views)
+    beta = settings.layer_agreement
     blocks = [torch.cat([m.matvec(torch.eye(80)[:, k : k + 1]) for k in range(80)], 1).double() for m in views.maps]
     matrix = torch.cat(blocks)
     rhs = torch.cat([t - b for t, b in zip(targets, views.constants)]).double()
@@ -260,9 +266,14 @@ def test_layer_agreement_reaches_the_dense_optimum_and_pulls_blended_splats_to_o
     def total(colors):
         return objective(views, colors, targets) + beta * blend_variance(views, colors)
 
-    settings = ColorSolveSettings(tolerance=1e-6, max_rounds=40, layer_agreement=beta)
     result = solve_colors(views, targets, start, settings, optimum=True)
     assert total(result.colors) <= 1.001 * total(x.float())
+
+
+def test_layer_agreement_pulls_blended_splats_to_one_colour(small):
+    _, views = small
+    targets, start, settings = _layer_agreement_case(views)
+    result = solve_colors(views, targets, start, settings, optimum=True)
     plain = solve_colors(views, targets, start, replace(settings, layer_agreement=0.0))
     assert blend_variance(views, result.colors) < 0.5 * blend_variance(views, plain.colors)
     assert result.least_squares is not None  # the logged optimum is the plain least squares

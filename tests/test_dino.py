@@ -121,6 +121,7 @@ def _tiny_scene(n: int = 150) -> GaussianScene:
     )
 
 
+@pytest.mark.slow
 def test_stylize_uses_dino_features_when_given_local_weights(dinov2):
     scene = _tiny_scene()
     cameras = [

@@ -109,6 +109,7 @@ def test_convert_onto_a_full_disk_keeps_the_old_file(inputs, tmp_path):
     assert target.read_bytes() == b"the old file" and _snapshot(tmp_path) == {"out.ply": _snapshot(tmp_path)["out.ply"]}
 
 
+@pytest.mark.slow
 def test_render_onto_a_full_disk_fails_instead_of_writing_empty_images(inputs, tmp_path):
     out = tmp_path / "renders"
     done = _cli(["render", inputs["scene"], "--cameras", inputs["cameras"], "--out", out], limit=256)
@@ -120,6 +121,7 @@ def test_render_onto_a_full_disk_fails_instead_of_writing_empty_images(inputs, t
     assert _snapshot(tmp_path) == {}
 
 
+@pytest.mark.slow
 def test_saved_views_onto_a_full_disk_stop_the_run_with_one_line(inputs, tmp_path):
     out = tmp_path / "run" / "stylized.ply"
     args = ["stylize", inputs["scene"], "--cameras", inputs["cameras"], "--style", inputs["style"], "--out", out]
@@ -128,6 +130,7 @@ def test_saved_views_onto_a_full_disk_stop_the_run_with_one_line(inputs, tmp_pat
     assert not out.exists() and all(p.stat().st_size > 0 for p in tmp_path.rglob("*.png"))
 
 
+@pytest.mark.slow
 def test_a_failed_checkpoint_stops_the_run_and_the_last_good_one_resumes(inputs, tmp_path):
     args = ["stylize", inputs["scene"], "--cameras", inputs["cameras"], "--style", inputs["style"], *TINY]
     args += ["--early-stop", "0", "--sh-rest", "keep", "--post-steps", "2"]  # the post stage: a log entry after the stages

@@ -4,6 +4,7 @@ and the loop's guided proposals agreeing across views better than unguided ones.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 from test_pipeline import TINY, away_camera, ring_cameras, sphere_scene, textured_style
 
@@ -53,6 +54,7 @@ def test_the_nearest_earlier_view_wins_and_what_no_earlier_view_sees_has_no_weig
     assert view_guide(1, [0], [red, None], depths, alphas, away, 2.0) is None  # it sees nothing of the sphere
 
 
+@pytest.mark.slow
 def test_guided_proposals_agree_across_views_better_than_unguided_ones():
     scene, cameras = sphere_scene(n=600), ring_cameras(6)
     depths, alphas = renders(scene, cameras)

@@ -10,14 +10,9 @@ from dresg_addon.method.losses import (
     SSIM_C1,
     SSIM_C2,
     FitLossWeights,
-    dssim,
-    feature_distance,
     fit_loss,
     gaussian_window,
-    l1_loss,
-    ssim,
     ssim_map,
-    total_variation,
 )
 from dresg_addon.util.errors import ConfigError
 
@@ -40,6 +35,11 @@ def _ssim_map_2d_reference(x, y):
     )
 
 
+def _tv_reference(x):
+    """Anisotropic TV for images at least 2 pixels tall and wide: mean |vertical step| + mean |horizontal step|."""
+    return (x[..., 1:, :] - x[..., :-1, :]).abs().mean() + (x[..., 1:] - x[..., :-1]).abs().mean()
+
+
 def test_gaussian_window():
     g = gaussian_window(11, 1.5, torch.float64)
     assert g.shape == (11,) and float(g.sum()) == pytest.approx(1.0, abs=1e-15)
@@ -51,7 +51,8 @@ def test_ssim_matches_the_2d_window_formulation():
     x, y = _rand(2, 3, 20, 17, seed=1, dtype=torch.float64), _rand(2, 3, 20, 17, seed=2, dtype=torch.float64)
     torch.testing.assert_close(ssim_map(x, y), _ssim_map_2d_reference(x, y), rtol=1e-10, atol=1e-12)
     assert ssim_map(x[0], y[0]).shape == (3, 20, 17)  # unbatched in, unbatched out
-    torch.testing.assert_close(ssim(x[0], y[0]), _ssim_map_2d_reference(x[:1], y[:1]).mean())
+    dssim = (1 - _ssim_map_2d_reference(x[:1], y[:1]).mean()) / 2
+    torch.testing.assert_close(fit_loss(x[0], y[0]).dssim, dssim, rtol=1e-10, atol=1e-12)
 
 
 def test_ssim_of_flat_images_has_the_closed_form():
@@ -66,9 +67,9 @@ def test_ssim_of_flat_images_has_the_closed_form():
 
 def test_identical_images():
     for image in (_rand(3, 24, 24), torch.zeros(3, 24, 24), torch.ones(3, 24, 24), torch.full((3, 9, 5), 0.42)):
-        assert float(ssim(image, image)) == pytest.approx(1.0, abs=1e-5)
-        assert float(dssim(image, image)) == pytest.approx(0.0, abs=1e-5)
-        assert float(l1_loss(image, image)) == 0.0
+        terms = fit_loss(image, image.clone())
+        assert float(ssim_map(image, image).mean()) == pytest.approx(1.0, abs=1e-5)
+        assert float(terms.dssim) == pytest.approx(0.0, abs=1e-5) and float(terms.l1) == 0.0
     flat = torch.full((2, 3, 16, 16), 0.5)
     terms = fit_loss(flat, flat.clone())
     assert float(terms.total) == pytest.approx(0.0, abs=1e-6)
@@ -76,14 +77,13 @@ def test_identical_images():
     terms = fit_loss(image, image.clone())
     assert float(terms.l1) == 0.0 and float(terms.dssim) == pytest.approx(0.0, abs=1e-6)
     # TV is a smoothness term on the render alone: the only non-zero part.
-    assert float(terms.total) == pytest.approx(0.01 * float(total_variation(image)), abs=1e-6)
+    assert float(terms.total) == pytest.approx(0.01 * float(_tv_reference(image)), abs=1e-6)
 
 
 def test_ssim_gradcheck_float64():
     x = _rand(1, 3, 8, 7, seed=4, dtype=torch.float64).requires_grad_()
     y = _rand(1, 3, 8, 7, seed=5, dtype=torch.float64).requires_grad_()
-    assert torch.autograd.gradcheck(lambda a, b: ssim(a, b), (x, y))
-    assert torch.autograd.gradcheck(lambda a, b: dssim(a, b), (x, y))
+    assert torch.autograd.gradcheck(lambda a, b: ssim_map(a, b).mean(), (x, y))
     assert torch.autograd.gradcheck(lambda a: fit_loss(a, y.detach()).total, (x,))
 
 
@@ -96,34 +96,46 @@ def test_flat_and_extreme_images_stay_finite():
         assert torch.isfinite(loss) and torch.isfinite(x.grad).all()
         assert torch.isfinite(ssim_map(x.detach(), y)).all()
     noisy = (torch.rand(1, 3, 12, 12) * 1e4).requires_grad_()
-    dssim(noisy, torch.zeros_like(noisy)).backward()
+    only_dssim = FitLossWeights(l1=0.0, dssim=1.0, tv=0.0, feature=0.0)
+    fit_loss(noisy, torch.zeros_like(noisy), weights=only_dssim).total.backward()
     assert torch.isfinite(noisy.grad).all()
 
 
 def test_l1_and_total_variation_values():
     x = torch.zeros(3, 4, 5)
-    assert float(l1_loss(x, x + 0.25)) == pytest.approx(0.25)
+    assert float(fit_loss(x, x + 0.25).l1) == pytest.approx(0.25)
+
+    def tv(image):
+        return float(fit_loss(image, image).tv)
+
     ramp = (0.1 * torch.arange(5.0)).expand(3, 4, 5)  # steps of 0.1 along the width, none along the height
-    assert float(total_variation(ramp)) == pytest.approx(0.1)
+    assert tv(ramp) == pytest.approx(0.1)
     checker = (torch.arange(4)[:, None] + torch.arange(4)[None, :]) % 2
-    assert float(total_variation(checker.float().expand(2, 3, 4, 4))) == pytest.approx(2.0)
-    assert float(total_variation(torch.rand(3, 1, 7))) > 0  # one pixel tall: only horizontal differences
-    assert float(total_variation(torch.rand(3, 1, 1))) == 0.0
+    assert tv(checker.float().expand(2, 3, 4, 4)) == pytest.approx(2.0)
+    row = torch.rand(3, 1, 7)  # one pixel tall: only horizontal differences
+    assert tv(row) == pytest.approx(float((row[..., 1:] - row[..., :-1]).abs().mean()))
+    assert tv(torch.rand(3, 1, 1)) == 0.0
 
 
 def test_feature_distances():
+    image = torch.rand(1, 3, 4, 4)
+
+    def feature(render_features, base_features, distance):
+        weights = FitLossWeights(feature_distance=distance)
+        return fit_loss(image, image, base_features, render_features, weights).feature
+
     a = torch.tensor([[[1.0, 0.0], [0.0, 1.0]]])  # [B=1, C=2, T=2] (channels at dim 1)
     b = torch.tensor([[[0.0, 0.0], [1.0, 1.0]]])
     # Position 0: (1, 0) vs (0, 1) -> orthogonal, 1. Position 1: (0, 1) vs (0, 1) -> 0.
-    assert float(feature_distance(a, b, "cosine")) == pytest.approx(0.5)
-    assert float(feature_distance(a, -a, "cosine")) == pytest.approx(2.0)
-    assert float(feature_distance(a, b, "l1")) == pytest.approx(0.5)
+    assert float(feature(a, b, "cosine")) == pytest.approx(0.5)
+    assert float(feature(a, -a, "cosine")) == pytest.approx(2.0)
+    assert float(feature(a, b, "l1")) == pytest.approx(0.5)
     zero = torch.zeros(1, 4, 3, 3, requires_grad=True)
-    loss = feature_distance(zero, torch.rand(1, 4, 3, 3), "cosine")
+    loss = feature(zero, torch.rand(1, 4, 3, 3), "cosine")
     loss.backward()
     assert float(loss.detach()) == pytest.approx(1.0) and torch.isfinite(zero.grad).all()
-    with pytest.raises(ValueError):
-        feature_distance(a, b[:, :1], "l1")
+    with pytest.raises(ValueError, match="must match"):
+        feature(a, b[:, :1], "l1")
 
 
 def test_fit_loss_combines_the_weighted_terms():
@@ -132,11 +144,12 @@ def test_fit_loss_combines_the_weighted_terms():
     base_features = _rand(2, 8, 4, 3, seed=8)
     render_features = render.mean(1, keepdim=True).expand(2, 8, 16, 12)[:, :, ::4, ::4]
     terms = fit_loss(render, target, base_features, render_features)
+    dssim = (1 - _ssim_map_2d_reference(render, target).mean()) / 2
     expected = (
-        l1_loss(render, target)
-        + 0.2 * dssim(render, target)
-        + 0.01 * total_variation(render)
-        + 0.01 * feature_distance(render_features, base_features)
+        (render - target).abs().mean()
+        + 0.2 * dssim
+        + 0.01 * _tv_reference(render)
+        + 0.01 * (render_features - base_features).abs().mean()
     )
     torch.testing.assert_close(terms.total, expected)
     assert float(terms.feature.detach()) > 0
@@ -152,19 +165,18 @@ def test_fit_loss_combines_the_weighted_terms():
     # No features or a zero weight: the term is skipped.
     assert float(fit_loss(render, target).feature.detach()) == 0.0
     custom = FitLossWeights(l1=0.0, dssim=1.0, tv=0.0, feature=0.0)
-    torch.testing.assert_close(
-        fit_loss(render, target, base_features, render_features, custom).total, dssim(render, target)
-    )
+    torch.testing.assert_close(fit_loss(render, target, base_features, render_features, custom).total, dssim)
     cosine = FitLossWeights(feature_distance="cosine")
     cos_terms = fit_loss(render, target, base_features, render_features, cosine)
-    torch.testing.assert_close(cos_terms.feature, feature_distance(render_features, base_features, "cosine"))
+    cosine_distance = 1 - F.cosine_similarity(render_features, base_features, dim=1)
+    torch.testing.assert_close(cos_terms.feature, cosine_distance.mean())
 
 
 def test_bad_inputs():
     with pytest.raises(ValueError, match="different shapes"):
         fit_loss(torch.rand(3, 4, 4), torch.rand(3, 4, 5))
     with pytest.raises(ValueError, match=r"\[C, H, W\] or \[B, C, H, W\]"):
-        ssim(torch.rand(4, 4), torch.rand(4, 4))
+        ssim_map(torch.rand(4, 4), torch.rand(4, 4))
     with pytest.raises(ConfigError):
         FitLossWeights(dssim=-1.0)
     with pytest.raises(ConfigError):

@@ -385,6 +385,7 @@ def test_gradient_structure_masked_ignores_the_background():
     assert float(metrics.gradient_structure_similarity(a, torch.where(mask, other, a), mask=mask)) < 0.85
 
 
+@pytest.mark.slow
 def test_masks_list_and_batch_agree():
     style = smooth_image(seed=0)
     images = torch.stack([smooth_image(seed=s) for s in (1, 2, 3)])

@@ -136,6 +136,7 @@ def baseline():
 # --- what a run changes and what it keeps --------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_stylize_moves_colours_toward_the_style_and_keeps_geometry(baseline):
     scene, cameras = sphere_scene(), ring_cameras()
     before = style_distance(scene, cameras)
@@ -151,6 +152,7 @@ def test_stylize_moves_colours_toward_the_style_and_keeps_geometry(baseline):
     assert sorted(baseline.selection.indices) == [0, 1, 2]
 
 
+@pytest.mark.slow
 def test_geometry_offsets_stay_within_their_bounds_and_opacity_is_frozen():
     scene = sphere_scene(n=200)
     # A huge geometry learning rate would leave the bounds at once without the projection.

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -25,6 +26,7 @@ def _outside_the_repository() -> dict:
     return {key: value for key, value in os.environ.items() if key != "PYTHONPATH"}
 
 
+@pytest.mark.slow
 def test_the_readme_python_example_runs(tmp_path):
     from dresg_addon.scene.demo import write_demo_assets
     from dresg_addon.scene.io import read_scene

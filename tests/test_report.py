@@ -178,6 +178,7 @@ def test_window_subset_keeps_every_gaussian_that_reaches_the_window():
     np.testing.assert_array_equal(cut["rgb"], full["rgb"])
 
 
+@pytest.mark.slow
 def test_report_command_writes_four_sections_and_plots(tmp_path):
     from dresg_addon.cli import main
     from dresg_addon.evaluation.report import draw_plots

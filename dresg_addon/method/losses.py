@@ -95,41 +95,6 @@ def ssim_map(
     return out if x.ndim == 4 else out[0]
 
 
-def ssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM over channels and pixels (and the batch): ``ssim_map(x, y).mean()``."""
-    return ssim_map(x, y).mean()
-
-
-def dssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Structural dissimilarity DSSIM = (1 - SSIM) / 2, in [0, 1]; 0 for identical images."""
-    return (1.0 - ssim(x, y)) / 2.0
-
-
-def l1_loss(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Mean absolute difference mean |x - y|."""
-    _as_batch(x, y)
-    return (x - y).abs().mean()
-
-
-def total_variation(x: torch.Tensor) -> torch.Tensor:
-    """Anisotropic total variation: mean |x[h+1, w] - x[h, w]| + mean |x[h, w+1] - x[h, w]|.
-
-    Each mean is over the finite differences that exist; an image one pixel tall or wide has none
-    along that axis and contributes 0 there.
-    """
-    return _per_image_tv(_as_batch(x, x)[0]).mean()
-
-
-def feature_distance(render_features: torch.Tensor, base_features: torch.Tensor, distance: str = "l1") -> torch.Tensor:
-    """Feature loss between two feature tensors of equal shape [B, C, ...] (channels at dim 1).
-
-    "l1": mean |f_r - f_b|. "cosine": mean over positions of 1 - cos(f_r, f_b) along the channels
-    (a zero feature vector counts as orthogonal). Any extractor works (DINO, patch features): the
-    caller computes the features, the base ones without gradient.
-    """
-    return _per_image_feature(render_features, base_features, distance).mean()
-
-
 FEATURE_PATCH = 4  # side of a feature's patch, in pooled pixels
 FEATURE_CONTRAST_FLOOR = 0.05  # keeps flat patches from being blown up by contrast normalisation
 
@@ -203,6 +168,7 @@ def fit_loss(
 
 
 def _per_image_tv(x: torch.Tensor) -> torch.Tensor:  # x [B, C, H, W] -> [B]
+    """Anisotropic TV: mean |x[h+1, w] - x[h, w]| + mean |x[h, w+1] - x[h, w]|; an axis one pixel long adds 0."""
     tv = x.new_zeros(x.shape[0])
     if x.shape[2] > 1:
         tv = tv + (x[:, :, 1:] - x[:, :, :-1]).abs().flatten(1).mean(1)
@@ -212,6 +178,7 @@ def _per_image_tv(x: torch.Tensor) -> torch.Tensor:  # x [B, C, H, W] -> [B]
 
 
 def _per_image_feature(a: torch.Tensor, b: torch.Tensor, distance: str) -> torch.Tensor:  # -> [B]
+    """Distance "l1": mean |a - b|; "cosine": mean over positions of 1 - cos(a, b) along dim 1 (zero vectors: 1)."""
     if a.shape != b.shape or a.ndim < 2:
         raise ValueError(f"feature shapes {tuple(a.shape)} and {tuple(b.shape)} must match and be [B, C, ...]")
     if distance == "l1":
