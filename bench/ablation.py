@@ -141,7 +141,7 @@ def run(args) -> dict:
     defaults = shared_defaults(args.scene, args.styles, quick=False)
     options = ReportOptions(width=args.width, height=args.height, views=args.views, **defaults).resolved()
     inputs = load_inputs(options)
-    variants = chosen_variants(args, config.proposal)
+    variants = chosen_variants(args, config.proposal.backend)
     print(f"{inputs.scene_label}; styles: {', '.join(n for n, _ in inputs.styles)}", file=sys.stderr)
     results = {key: [] for key, *_ in variants}
     started = time.perf_counter()

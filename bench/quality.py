@@ -195,8 +195,8 @@ def run_case(spec: dict) -> dict:
         out = colour_transfer_scene(scene, train, style)
     else:
         name, changes = row_settings(row)
-        config = preset(name, log_optimum=True, **spec.get("overrides", {}), **changes)
-        result = stylize(scene, train, style, config)
+        config = preset(name, **spec.get("overrides", {}), **changes)
+        result = stylize(scene, train, style, config, log_optimum=True)
         out, log = result.scene, result.log
     # The time a user waits: the diagnostic solves for the logged optimum left out.
     seconds = time.perf_counter() - started - sum(e.get("optimum_seconds", 0.0) for e in log)
@@ -226,21 +226,23 @@ def run_case(spec: dict) -> dict:
 
 
 def row_settings(row: str) -> tuple[str, dict]:
-    """A stylizer row's preset and its changed settings: ``standard@stroke_size=2,scene_weight=0.7``."""
-    from dataclasses import fields
-
-    from dresg_addon.method.config import StylizeConfig
+    """A stylizer row's preset and its changed settings, named flat or dotted:
+    ``standard@stroke_size=2,solve.anchor=0.5``."""
+    from dresg_addon.method.config import PRESETS
+    from dresg_addon.util.errors import ConfigError
 
     name, _, rest = row.partition("@")
-    types = {f.name: f.type for f in fields(StylizeConfig)}
     changes = {}
     for item in filter(None, rest.split(",")):
         key, _, value = item.partition("=")
-        if key not in types:
-            raise SystemExit(f"quality bench: {key!r} in row {row!r} is not a StylizeConfig setting")
-        changes[key] = {"int": int, "float": float, "bool": lambda v: v.lower() in ("1", "true", "on")}.get(
-            types[key], str
-        )(value)
+        try:
+            kind = type(PRESETS["paper"].value(key))
+        except ConfigError:
+            raise SystemExit(f"quality bench: {key!r} in row {row!r} is not a StylizeConfig setting") from None
+        if kind is tuple:
+            raise SystemExit(f"quality bench: {key!r} in row {row!r} cannot be set from a row")
+        parse = (lambda v: v.lower() in ("1", "true", "on")) if kind is bool else kind
+        changes[key] = parse(value)
     return name, changes
 
 

@@ -167,9 +167,9 @@ class StylizeJob(Job):
         scene = result.scene
         self.n_stylized = result.stylized
         write_colors(obj, scene.sh_dc)
-        if self.config.optimize_geometry:
+        if self.config.fit.optimize_geometry:
             write_geometry(obj, scene.means, scene.log_scales, scene.quats)
-        obj["dresg_sh_rest"] = self.config.sh_rest
+        obj["dresg_sh_rest"] = self.config.scene.sh_rest
         obj["dresg_stylize_settings"] = json.dumps(
             {"style": self.style_name, "seconds": round(result.seconds, 1), **self.config.to_dict()}
         )

@@ -18,7 +18,7 @@ from ..dresg_addon.method.config import (
 )
 from ..dresg_addon.scene.splat_mesh import UP_AXES
 
-# Panel field -> StylizeConfig field, copied by a preset and read back by config().
+# Panel fields named as StylizeConfig settings (flat names), copied by a preset and read back by config().
 CONFIG_FIELDS = (
     "stages",
     "fit_steps",
@@ -47,13 +47,13 @@ SCHEDULE_LABELS = {
 }
 
 def _default(name: str):
-    return getattr(PRESETS[DEFAULT_PRESET], name)
+    return PRESETS[DEFAULT_PRESET].value(name)
 
 
 def _apply_preset(settings, _context) -> None:
     values = PRESETS[settings.preset]
     for name in CONFIG_FIELDS:
-        setattr(settings, name, getattr(values, name))
+        setattr(settings, name, values.value(name))
 
 
 class DRESG_PG_view(bpy.types.PropertyGroup):

@@ -85,9 +85,9 @@ def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[
     camera_objects = ticked or scene_cameras(scene)
     views = list(range(len(ticked))) if ticked else None
     note = ""
-    if views is not None and 0 < config.max_views < len(views):
+    if views is not None and 0 < config.views.max_views < len(views):
         views = None  # the engine picks Max Views of the ticked cameras by coverage
-        note = f"{len(ticked)} cameras ticked, Max Views is {config.max_views}: the ones that cover the most are used"
+        note = f"{len(ticked)} cameras ticked, Max Views is {config.views.max_views}: the ones that cover the most are used"
     if camera_objects:
         cameras = fitting_cameras(scene, obj, camera_objects)
     else:
@@ -164,7 +164,7 @@ class DRESG_OT_stylize(JobOperator, bpy.types.Operator):
         except DresgError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        if run.config.proposal == "sd15" and not _cuda_available():
+        if run.config.proposal.backend == "sd15" and not _cuda_available():
             self.report({"WARNING"}, "SD1.5 without a GPU: each latent update takes seconds per view, expect hours")
         return self.run_modal(context, run)
 

@@ -39,34 +39,34 @@ from dresg_addon.util.errors import ConfigError
 
 @pytest.mark.parametrize("value", [0.25, 1.0, 2.5, 8.0])
 def test_stroke_size_in_range_is_accepted(value):
-    assert StylizeConfig(stroke_size=value).stroke_size == value
+    assert StylizeConfig().with_(stroke_size=value).proposal.stroke_size == value
 
 
 @pytest.mark.parametrize("value", [0.0, 0.2, 8.5, -1.0, math.nan, math.inf])
 def test_stroke_size_out_of_range_is_one_line_config_error(value):
     with pytest.raises(ConfigError, match=r"stroke_size must be in \[0.25, 8\]") as error:
-        StylizeConfig(stroke_size=value)
+        StylizeConfig().with_(stroke_size=value)
     assert "\n" not in str(error.value)
 
 
 @pytest.mark.parametrize("value", [0.0, 0.5, 1.0])
 def test_scene_weight_in_range_is_accepted(value):
-    assert StylizeConfig(scene_weight=value).scene_weight == value
+    assert StylizeConfig().with_(scene_weight=value).proposal.scene_weight == value
 
 
 @pytest.mark.parametrize("value", [-0.1, 1.01, math.nan, math.inf])
 def test_scene_weight_out_of_range_is_one_line_config_error(value):
     with pytest.raises(ConfigError, match=r"scene_weight must be in \[0, 1\]") as error:
-        StylizeConfig(scene_weight=value)
+        StylizeConfig().with_(scene_weight=value)
     assert "\n" not in str(error.value)
 
 
 def test_defaults_and_presets_keep_the_content_weights_they_had():
     assert not hasattr(StylizeConfig(), "content_weight")
-    assert StylizeConfig().stroke_size == 1.0 and StylizeConfig().scene_weight == 0.5
-    assert sd15_content_weight(StylizeConfig().scene_weight) == pytest.approx(0.15)  # the paper's w_c
+    assert StylizeConfig().proposal.stroke_size == 1.0 and StylizeConfig().proposal.scene_weight == 0.5
+    assert sd15_content_weight(StylizeConfig().proposal.scene_weight) == pytest.approx(0.15)  # the paper's w_c
     for name in ("standard", "preview"):
-        assert synth_content_weight(PRESETS[name].scene_weight) == pytest.approx(1.0)  # the presets' old w_c
+        assert synth_content_weight(PRESETS[name].proposal.scene_weight) == pytest.approx(1.0)  # the presets' old w_c
 
 
 # --- Paint <-> Scene: the backends' content weights -----------------------------------------------------
@@ -87,11 +87,11 @@ def test_scene_weight_maps_to_each_backends_content_weight():
 
 @pytest.mark.parametrize(("scene_weight", "expected"), [(0.0, 0.0), (0.5, 1.0), (1.0, CONTENT_WEIGHT_CAP)])
 def test_the_synth_backend_gets_the_mapped_weight_and_the_stroke_scale(scene_weight, expected):
-    backend = _proposal_backend(StylizeConfig(scene_weight=scene_weight, stroke_size=3.0), None)
+    backend = _proposal_backend(StylizeConfig().with_(scene_weight=scene_weight, stroke_size=3.0), None)
     assert isinstance(backend, SynthBackend)
     assert backend.settings.content_weight == pytest.approx(expected)
     assert backend.settings.content_sigma == pytest.approx(3.0 * SynthSettings.content_sigma)
-    ablated = _proposal_backend(StylizeConfig(scene_weight=scene_weight, use_content_query=False), None)
+    ablated = _proposal_backend(StylizeConfig().with_(scene_weight=scene_weight, use_content_query=False), None)
     assert ablated.settings.content_weight == 0.0
 
 
@@ -134,8 +134,11 @@ def test_stroke_size_two_gives_the_backend_a_painting_twice_the_size(monkeypatch
 
 
 def test_stroke_size_rounds_each_side():
-    assert loop.style_size(StylizeConfig(proposal_width=448, proposal_height=320, stroke_size=1.5)) == (480, 672)
-    assert loop.style_size(StylizeConfig(proposal_width=33, proposal_height=21, stroke_size=0.25)) == (5, 8)
+    assert loop.style_size(StylizeConfig().with_(proposal_width=448, proposal_height=320, stroke_size=1.5)) == (
+        480,
+        672,
+    )
+    assert loop.style_size(StylizeConfig().with_(proposal_width=33, proposal_height=21, stroke_size=0.25)) == (5, 8)
 
 
 # --- the CLI ----------------------------------------------------------------------------------------------
@@ -147,9 +150,12 @@ def _stylize_args(*extra: str):
 
 def test_cli_flags_parse_into_the_config():
     config = config_from_args(_stylize_args("--stroke-size", "2.5", "--paint-scene", "0.8"))
-    assert (config.stroke_size, config.scene_weight) == (2.5, 0.8)
+    assert (config.proposal.stroke_size, config.proposal.scene_weight) == (2.5, 0.8)
     default = config_from_args(_stylize_args())
-    assert (default.stroke_size, default.scene_weight) == (preset("standard").stroke_size, preset("standard").scene_weight)
+    assert (default.proposal.stroke_size, default.proposal.scene_weight) == (
+        preset("standard").proposal.stroke_size,
+        preset("standard").proposal.scene_weight,
+    )
     with pytest.raises(ConfigError, match="scene_weight"):
         config_from_args(_stylize_args("--paint-scene", "1.5"))
     with pytest.raises(ConfigError, match="stroke_size"):
@@ -289,6 +295,6 @@ def test_every_preset_has_a_label_and_a_description_read_from_its_settings():
     for name, config in PRESETS.items():
         text = preset_description(name)
         assert preset_label(name) and text.endswith(PRESET_INFO[name][2][1:])
-        assert f"{config.stages} stages" in text
-        assert (f"up to {config.max_views} views" in text) == bool(config.max_views)
-        assert ("colours only" in text) == (not config.optimize_geometry)
+        assert f"{config.schedule.stages} stages" in text
+        assert (f"up to {config.views.max_views} views" in text) == bool(config.views.max_views)
+        assert ("colours only" in text) == (not config.fit.optimize_geometry)

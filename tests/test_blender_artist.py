@@ -150,8 +150,8 @@ def test_stroke_size_and_paint_scene_reach_the_run(addon, tmp_path):
     assert "content_weight" not in settings_rna
     config = addon.dresg_addon.method.config
     settings = bpy.context.scene.dresg
-    assert settings.stroke_size == config.PRESETS[config.DEFAULT_PRESET].stroke_size
-    assert settings.scene_weight == pytest.approx(config.PRESETS[config.DEFAULT_PRESET].scene_weight)
+    assert settings.stroke_size == config.PRESETS[config.DEFAULT_PRESET].proposal.stroke_size
+    assert settings.scene_weight == pytest.approx(config.PRESETS[config.DEFAULT_PRESET].proposal.scene_weight)
     _import(tmp_path, _scene())
     from dresg_addon.util.imageio import write_image
 
@@ -160,10 +160,10 @@ def test_stroke_size_and_paint_scene_reach_the_run(addon, tmp_path):
     bpy.ops.dresg.add_orbit_cameras(count=2)
     settings.stroke_size, settings.scene_weight = 2.5, 0.8
     run, _ = addon.operators.stylize.prepare_job(bpy.context)
-    assert (run.config.stroke_size, run.config.scene_weight) == pytest.approx((2.5, 0.8))
+    assert (run.config.proposal.stroke_size, run.config.proposal.scene_weight) == pytest.approx((2.5, 0.8))
     settings.preset = "preview"  # a preset brings its own values back
-    assert settings.scene_weight == pytest.approx(config.PRESETS["preview"].scene_weight)
-    assert settings.stroke_size == config.PRESETS["preview"].stroke_size
+    assert settings.scene_weight == pytest.approx(config.PRESETS["preview"].proposal.scene_weight)
+    assert settings.stroke_size == config.PRESETS["preview"].proposal.stroke_size
     panel = [args[1] for name, args, kw in _drawn(addon.ui.panels.DRESG_PT_style) if name == "prop"]
     assert panel.index("stroke_size") < panel.index("scene_weight") < panel.index("preset")
 

@@ -141,12 +141,11 @@ def test_geometry_on_cpu_says_what_it_costs(files, tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_stylize_as_a_module_with_ablation_switches_and_quiet(files, tmp_path):
+def test_stylize_as_a_module_with_settings_and_quiet(files, tmp_path):
     out = tmp_path / "switches.ply"
-    args = _stylize_args(files, out, "--no-feedback", "--no-pcgrad", "--schedule", "triangle", "--views", "0,2")
+    args = _stylize_args(files, out, "--schedule", "triangle", "--views", "0,2")
     args += ["--early-stop", "0.5", "--stages", "2", "--guide-weight", "0", "--solve-anchor", "0"]
-    args += ["--layer-agreement", "0.5"]
-    args += ["--solve-tolerance", "0.01", "--robust-power", "1.5", "--color-fit", "solve", "--strength", "0"]
+    args += ["--solve-tolerance", "0.01", "--color-fit", "solve", "--strength", "0"]
     args += ["--sh-rest", "keep", "--log", str(tmp_path / "custom.jsonl"), "--quiet"]
     done = subprocess.run(
         [sys.executable, "-m", "dresg_addon", *args], cwd=REPO, capture_output=True, text=True, timeout=300
@@ -197,12 +196,9 @@ def test_select_views_prints_a_table_and_json(files, capsys):
         ({"--background": "2,0,0"}, "--background"),
         ({"--early-stop": "1.5"}, "early_stop must be in [0, 1)"),
         ({"--solve-anchor": "-1"}, "solve_anchor must be >= 0"),
-        ({"--layer-agreement": "nan"}, "layer_agreement must be >= 0"),
         ({"--strength": "2"}, "strength must be in [0, 1]"),
-        ({"--robust-power": "3"}, "robust_power must be in (0, 2]"),
         ({"--stroke-size": "0.1"}, "stroke_size must be in [0.25, 8]"),
         ({"--paint-scene": "-0.5"}, "scene_weight must be in [0, 1]"),
-        ({"--no-style-keys": None}, "synth backend has none"),
     ],
 )
 def test_stylize_errors_are_one_line_with_exit_code_2(files, tmp_path, capsys, change, message):
@@ -210,9 +206,7 @@ def test_stylize_errors_are_one_line_with_exit_code_2(files, tmp_path, capsys, c
     args = _stylize_args(files, out)
     for flag, value in change.items():
         value = str(tmp_path / value) if flag == "--style" else value
-        if value is None:  # a switch
-            args.append(flag)
-        elif flag in args:
+        if flag in args:
             args[args.index(flag) + 1] = value
         else:
             args += [flag, value]
@@ -238,7 +232,7 @@ def test_demo_command_writes_its_assets_and_before_after_images(tmp_path, monkey
     monkeypatch.setattr(
         demo, "demo_cameras", lambda scene, n, **kw: real_cameras(scene, n=n, width=64, height=48, **kw)
     )
-    tiny = StylizeConfig(
+    tiny = StylizeConfig().with_(
         stages=1,
         updates_per_stage=2,
         fit_steps=2,

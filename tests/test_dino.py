@@ -129,7 +129,7 @@ def test_stylize_uses_dino_features_when_given_local_weights(dinov2):
         for i, a in enumerate((0.0, 2.0))
     ]
     style = np.broadcast_to(np.float32([0.1, 0.2, 0.9]), (24, 32, 3))
-    config = StylizeConfig(
+    config = StylizeConfig().with_(
         stages=1,
         updates_per_stage=2,
         fit_steps=2,

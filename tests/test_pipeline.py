@@ -33,7 +33,7 @@ from dresg_addon.util.imageio import read_image
 
 REPO = Path(__file__).resolve().parents[1]
 STYLE_RGB = np.array([0.1, 0.2, 0.9], dtype=np.float32)  # strong blue, far from the scene's warm colours
-TINY = StylizeConfig(
+TINY = StylizeConfig().with_(
     stages=2,
     updates_per_stage=2,
     fit_steps=3,
@@ -161,7 +161,11 @@ def test_geometry_offsets_stay_within_their_bounds_and_opacity_is_frozen():
     result = run(scene, config=config, on_stage=updates.append)
     extent = result.log[0]["scene_extent"]  # about the sphere's radius 0.5: the mean bound is 0.05 x extent
     assert extent == pytest.approx(0.5, rel=0.1)
-    bounds = {"means": config.mean_bound * extent, "log_scales": config.log_scale_bound, "quats": config.quat_bound}
+    bounds = {
+        "means": config.adam.mean_bound * extent,
+        "log_scales": config.adam.log_scale_bound,
+        "quats": config.adam.quat_bound,
+    }
     for name, bound in bounds.items():
         offset = np.abs(getattr(result.scene, name).astype(np.float64) - getattr(scene, name))
         assert offset.max() <= bound + 1e-6, name
@@ -180,10 +184,10 @@ def test_a_scaled_scene_gives_the_scaled_stylized_scene(factor):
     config = TINY.with_(stages=1, optimize_geometry=True, scene_weight=0.0)
     base = run(scene, cameras, config=config)
     big, big_cameras = scaled_scene(scene, cameras, factor)
-    scaled = run(big, big_cameras, config=config.with_(near=config.near * factor))
+    scaled = run(big, big_cameras, config=config.with_(near=config.scene.near * factor))
     extent = base.log[0]["scene_extent"]
     assert scaled.log[0]["scene_extent"] == pytest.approx(factor * extent, rel=1e-5)
-    bound = config.mean_bound * extent
+    bound = config.adam.mean_bound * extent
     offsets = base.scene.means.astype(np.float64) - scene.means
     scaled_offsets = (scaled.scene.means.astype(np.float64) - big.means) / factor
     assert np.abs(offsets).max() > 0.05 * bound  # the means did move
@@ -193,7 +197,7 @@ def test_a_scaled_scene_gives_the_scaled_stylized_scene(factor):
     # gradient is ~0 (rounding-level differences of the renders, and so of the proposals' patch matches)
     # step differently; the rest agree to float32 rounding.
     quats = np.abs(scaled.scene.quats - base.scene.quats)
-    assert np.mean(quats > 1e-4) < 0.1 and quats.max() <= 2 * config.quat_bound
+    assert np.mean(quats > 1e-4) < 0.1 and quats.max() <= 2 * config.adam.quat_bound
     np.testing.assert_allclose(
         scaled.scene.log_scales - big.log_scales, base.scene.log_scales - scene.log_scales, rtol=0, atol=1e-5
     )
@@ -205,9 +209,9 @@ def test_a_given_scene_extent_replaces_the_measured_one():
     result = run(scene, config=config.with_(scene_extent=1.0))  # the paper's absolute numbers
     assert result.log[0]["scene_extent"] == 1.0
     offset = np.abs(result.scene.means.astype(np.float64) - scene.means).max()
-    assert 0.5 * config.mean_bound < offset <= config.mean_bound + 1e-6
+    assert 0.5 * config.adam.mean_bound < offset <= config.adam.mean_bound + 1e-6
     with pytest.raises(ConfigError):
-        StylizeConfig(scene_extent=-1.0)
+        StylizeConfig().with_(scene_extent=-1.0)
 
 
 def test_same_seed_gives_identical_arrays_and_another_seed_does_not():
@@ -247,18 +251,18 @@ def test_progress_reports_every_phase_with_finite_etas_after_the_first_stage(bas
     phases = [p.phase for p in reports]
     assert phases[0] == "select" and phases[-1] == "done"
     assert set(phases) == {"select", "setup", "proposal", "fit", "feedback", "post", "done"}
-    assert all(p.stages == TINY.stages for p in reports)
+    assert all(p.stages == TINY.schedule.stages for p in reports)
     for stage in (1, 2):
         fits = [p.step for p in reports if p.phase == "fit" and p.stage == stage]
         # The solve's start, one report per round, then its end.
-        assert fits[:-1] == list(range(len(fits) - 1)) and fits[-1] == TINY.solve_rounds
+        assert fits[:-1] == list(range(len(fits) - 1)) and fits[-1] == TINY.solve.rounds
         proposals = [p.step for p in reports if p.phase == "proposal" and p.stage == stage]
         assert proposals == [0, 1, 2]  # one per active view
         assert all(math.isfinite(p.loss) for p in reports if p.phase == "fit" and p.stage == stage and p.step)
     post_steps = [p.step for p in reports if p.phase == "post"]
     assert post_steps[:2] == [0, 0]  # the colour transfer, the solve's start
-    assert post_steps[2:-1] == list(range(1, len(post_steps) - 2)) and post_steps[-1] == TINY.solve_rounds
-    assert all(p.stage == TINY.stages + 1 for p in reports if p.phase == "post")
+    assert post_steps[2:-1] == list(range(1, len(post_steps) - 2)) and post_steps[-1] == TINY.solve.rounds
+    assert all(p.stage == TINY.schedule.stages + 1 for p in reports if p.phase == "post")
     later = [p for p in reports if p.stage >= 2 and p.phase != "done"]
     assert later and all(math.isfinite(p.eta_seconds) and p.eta_seconds >= 0 for p in later)
     assert reports[-1].eta_seconds == 0.0
@@ -531,9 +535,11 @@ def test_every_ablation_switch_runs_and_changes_the_result(switch, ablation_base
     config = ABLATION.with_(**SWITCHES[switch])
     result = run(sphere_scene(n=200), style=textured_style(), config=config)
     assert np.isfinite(result.scene.sh_dc).all()
-    gammas = stage_gammas(config.schedule, stage_timesteps(config.stages, config.updates_per_stage))
+    gammas = stage_gammas(
+        config.schedule.strength, stage_timesteps(config.schedule.stages, config.schedule.updates_per_stage)
+    )
     assert [e["gamma"] for e in result.log] == gammas
-    same_run = config.schedule == "snr-balanced" and switch.startswith("schedule")
+    same_run = config.schedule.strength == "snr-balanced" and switch.startswith("schedule")
     changed = not np.array_equal(result.scene.sh_dc, ablation_baseline.scene.sh_dc)
     assert changed != same_run
 
@@ -554,8 +560,8 @@ def test_the_log_has_one_line_per_stage_and_saved_views_hold_four_images_per_vie
     entries = [json.loads(line) for line in log_path.read_text().splitlines()]
     assert entries == json.loads(json.dumps(result.log))
     assert [e["stage"] for e in entries] == [1, 2, "post"]
-    stages = stage_timesteps(config.stages, config.updates_per_stage)
-    gammas = stage_gammas(config.schedule, stages)
+    stages = stage_timesteps(config.schedule.stages, config.schedule.updates_per_stage)
+    gammas = stage_gammas(config.schedule.strength, stages)
     for entry, stage, gamma in zip(entries, stages, gammas):
         assert entry["t"] == stage.state and entry["gamma"] == gamma
         assert math.isfinite(entry["energy"]) and entry["views"] == 3
@@ -564,19 +570,19 @@ def test_the_log_has_one_line_per_stage_and_saved_views_hold_four_images_per_vie
         # The solve's objective after each round: never rising.
         losses = entry["fit_losses"]
         assert all(math.isfinite(v) for v in losses) and losses == sorted(losses, reverse=True)
-        assert entry["fit_loss_last"] == losses[-1] and 1 <= len(losses) <= config.solve_rounds + 1
+        assert entry["fit_loss_last"] == losses[-1] and 1 <= len(losses) <= config.solve.rounds + 1
         # How far each fit got: the residual is at most the gap; the anchored fit logs no optimum unless asked.
         assert 0 <= entry["fit_residual"] <= entry["target_gap"]
         assert entry["gap_closed"] == pytest.approx(1 - entry["fit_residual"] / entry["target_gap"])
         assert entry["optimum_residual"] is None and entry["optimum_seconds"] == 0.0
         assert entry["fit_moved"] > 0 and entry["fit_iterations"] >= 1
     # Asked for, the joint optimum is at most what the anchored fit reached; unanchored, it is the fit.
-    for entry in run(config=config.with_(log_optimum=True)).log:
+    for entry in run(config=config, log_optimum=True).log:
         assert entry["optimum_residual"] <= entry["fit_residual"] + 1e-6 and entry["optimum_seconds"] > 0
     for entry in run(config=config.with_(solve_anchor=0.0)).log:
         assert entry["optimum_residual"] == pytest.approx(entry["fit_residual"], rel=1e-5)
     adam = run(config=config.with_(color_fit="adam")).log
-    assert [len(e["fit_losses"]) for e in adam] == [config.fit_steps] * 2 + [config.post_steps]
+    assert [len(e["fit_losses"]) for e in adam] == [config.fit.fit_steps] * 2 + [config.fit.post_steps]
     assert all(e["optimum_residual"] is None and e["fit_residual"] >= 0 for e in adam)
     assert [e["seconds"] for e in entries] == sorted(e["seconds"] for e in entries)
 
@@ -592,7 +598,7 @@ def test_the_log_has_one_line_per_stage_and_saved_views_hold_four_images_per_vie
 def test_the_post_stage_fit_ends_near_the_optimum_of_its_colour_map():
     """The post stage's targets are one affine colour map of the renders: its solve starts from the splats' colours
     under that map and is anchored there, so the anchor does not hold the fit back from the optimum."""
-    post = run(config=TINY.with_(stages=1, post_steps=2, log_optimum=True)).log[-1]
+    post = run(config=TINY.with_(stages=1, post_steps=2), log_optimum=True).log[-1]
     assert post["stage"] == "post" and post["gap_closed"] > 0.2  # the optimum itself closes 0.40 of this gap
     assert post["fit_residual"] <= 1.2 * post["optimum_residual"] + 1e-4
 
@@ -735,7 +741,7 @@ def test_the_patch_backend_imports_neither_diffusers_nor_transformers():
         "quats = np.tile(np.float32([1, 0, 0, 0]), (100, 1))\n"
         "scene = GaussianScene(means, np.full((100, 3), -2.5, np.float32), quats, np.ones(100, np.float32),\n"
         "    rng.normal(size=(100, 3)).astype(np.float32))\n"
-        "config = StylizeConfig(stages=1, updates_per_stage=1, fit_steps=1, post_steps=1,\n"
+        "config = StylizeConfig().with_(stages=1, updates_per_stage=1, fit_steps=1, post_steps=1,\n"
         "    proposal_width=16, proposal_height=16, optimize_geometry=False)\n"
         "stylize(scene, [Camera(32, 24, 30.0, 30.0, 16.0, 12.0)], np.full((8, 8, 3), 0.5, np.float32), config)\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('diffusers', 'transformers', 'bpy')))\n"

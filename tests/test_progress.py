@@ -162,7 +162,7 @@ def test_the_fit_counter_names_rounds_or_steps_as_the_settings_do(color_fit):
     posts = [p for _, p in reports if p.phase == "post" and p.step > 0]
     if color_fit == "solve":
         assert all(p.message.startswith("colour solve round ") for p in fits + posts)
-        assert all(p.message.endswith(f"(at most {config.solve_rounds})") for p in fits + posts)
+        assert all(p.message.endswith(f"(at most {config.solve.rounds})") for p in fits + posts)
     else:  # the panel's Fit Steps and Final Colour Steps
         assert [p.message for p in fits] == ["fit step 1/3", "fit step 2/3", "fit step 3/3"]
         assert [p.message for p in posts] == ["fit step 1/2", "fit step 2/2"]

@@ -735,7 +735,7 @@ def test_stroke_size_scales_the_marks(stroke_size, period):
     _, x = torch.meshgrid(torch.arange(96.0), torch.arange(128.0), indexing="ij")
     on = (x // 4) % 2  # vertical stripes 8 px apart at the view's size
     painting = torch.stack([0.2 + 0.6 * on, 0.3 + 0.4 * on, 0.5 - 0.2 * on])
-    config = StylizeConfig(proposal_width=width, proposal_height=height, stroke_size=stroke_size)
+    config = StylizeConfig().with_(proposal_width=width, proposal_height=height, stroke_size=stroke_size)
     style = _resize(painting, *style_size(config))  # what the loop hands the backend
     backend = SynthBackend(content_weight=1.0, content_sigma=stroke_sigma(config))
     out, _ = backend.propose(content, (951, 751, 501, 336, 171, 1), style, content)

@@ -71,7 +71,7 @@ def run(args) -> int:
         messages=lambda m: print(m, file=sys.stderr),
     )
     write_scene(result.scene, out / "stylized.ply")
-    settings = RasterSettings(background=config.background)
+    settings = RasterSettings(background=config.scene.background)
 
     def image(splats, camera):  # [H, W, 3] on the CPU
         return render_scene(splats, camera, settings, device=device).rgb.cpu()

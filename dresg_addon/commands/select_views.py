@@ -23,17 +23,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from ..method.config import StylizeConfig
+    from ..method.config import StylizeConfig, ViewSettings
     from ..method.views import select_active_views
 
     device = parse_device(args.device)
     scene, cameras = load_scene_and_cameras(args)
     config = StylizeConfig(
-        max_views=args.max_views,
-        w_min=args.w_min,
-        rho=args.rho,
-        coverage_stop=args.coverage_stop,
-        gain_threshold=args.gain_threshold,
+        views=ViewSettings(
+            max_views=args.max_views,
+            w_min=args.w_min,
+            rho=args.rho,
+            coverage_stop=args.coverage_stop,
+            gain_threshold=args.gain_threshold,
+        )
     )
     chosen = select_active_views(scene, cameras, config, progress=args.threads.wrap(None), device=device)
     names = [c.name or f"view_{i:03d}" for i, c in enumerate(cameras)]

@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import fields
 from pathlib import Path
 
 from ..method.config import (
     COLOR_FITS,
     DEFAULT_PRESET,
+    FLAT_NAMES,
     PRESETS,
     PROPOSALS,
     SCHEDULES,
@@ -70,13 +70,6 @@ KNOBS = (
         float,
         "colour solve: pull toward the colours before each fit (0: plain least squares)",
     ),
-    (
-        "--layer-agreement",
-        "layer_agreement",
-        float,
-        "colour solve: pull the splats blended in one pixel toward one colour (0: off)",
-    ),
-    ("--robust-power", "robust_power", float, "colour solve: r of sum |render - target|^r (2: least squares)"),
     ("--color-lr", "color_lr", float, "Adam learning rate of the colours"),
     ("--geometry-lr", "geometry_lr", float, "Adam learning rate of the geometry offsets (means: x scene extent)"),
     ("--scene-extent", "scene_extent", float, "length the mean offsets' lr and bound scale with (0: measured)"),
@@ -91,14 +84,6 @@ KNOBS = (
         "leave out the remaining stages once two stages improve the style distance by less than this fraction "
         "(0: run every stage)",
     ),
-)
-SWITCHES = (
-    ("--no-feedback", "feedback", "ablation: keep optimising the first latent instead of re-encoding the render"),
-    ("--no-pcgrad", "pcgrad", "ablation: average colour gradients without conflict projection"),
-    ("--image-space", "logit_space", "ablation: scale residuals in image space instead of RGB-logit space"),
-    ("--no-content-query", "use_content_query", "ablation: drop the content-query energy (w/o Q_c)"),
-    ("--no-style-keys", "use_style_keys", "ablation: attend to the render's own keys (w/o K_s)"),
-    ("--no-style-values", "use_style_values", "ablation: attend to the render's own values (w/o V_s)"),
 )
 
 
@@ -146,8 +131,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     for flag, _, kind, text in KNOBS:
         parser.add_argument(flag, type=kind, help=text)
-    for flag, _, text in SWITCHES:
-        parser.add_argument(flag, action="store_true", help=text)
     parser.add_argument(
         "--save-views", metavar="DIR", help="write each active view's render, proposal, target and residual per stage"
     )
@@ -181,9 +164,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def config_from_args(args):
     overrides = {field: getattr(args, flag[2:].replace("-", "_")) for flag, field, _, _ in KNOBS}
     overrides = {k: v for k, v in overrides.items() if v is not None}
-    for flag, field, _ in SWITCHES:
-        if getattr(args, flag[2:].replace("-", "_")):
-            overrides[field] = False
     for name, field in (
         ("proposal", "proposal"),
         ("model", "model_path"),
@@ -203,8 +183,7 @@ def config_from_args(args):
         except ValueError:
             raise ConfigError(f"--proposal-size must look like 448x320 (got {args.proposal_size!r})") from None
         overrides["proposal_width"], overrides["proposal_height"] = width, height
-    known = {f.name for f in fields(PRESETS[args.preset])}
-    assert set(overrides) <= known  # the tables above name real fields
+    assert set(overrides) <= set(FLAT_NAMES)  # the tables above name real settings
     return preset(args.preset, **overrides)
 
 
@@ -244,15 +223,15 @@ def room_needed(scene, cameras, config, out: Path, log_path: Path, checkpoint_di
     moments, each view's state), the log, and with ``views_dir`` four 8-bit images per view and stage."""
     from ..scene.io import encoded_size
 
-    views = min(len(cameras), config.max_views or len(cameras))
-    pixels = config.proposal_width * config.proposal_height
-    per_splat = 3 + (10 if config.optimize_geometry else 0)  # colours, and mean, scale and rotation offsets
+    views = min(len(cameras), config.views.max_views or len(cameras))
+    pixels = config.proposal.width * config.proposal.height
+    per_splat = 3 + (10 if config.fit.optimize_geometry else 0)  # colours, and mean, scale and rotation offsets
     needs: dict[Path, int] = {}
     for folder, size in (
         (out.parent, encoded_size(scene, out)),
         (checkpoint_dir, 3 * 4 * per_splat * len(scene) + 4 * 3 * pixels * views + 2**20),
         (log_path.parent, 2**20),
-        *([(Path(views_dir), 4 * 3 * pixels * views * (config.stages + 1))] if views_dir else []),
+        *([(Path(views_dir), 4 * 3 * pixels * views * (config.schedule.stages + 1))] if views_dir else []),
     ):
         needs[folder] = needs.get(folder, 0) + size
     return needs
@@ -283,7 +262,7 @@ def run(args) -> int:
     checkpoint_dir = Path(args.checkpoint_dir) if args.checkpoint_dir else out.with_suffix(".checkpoint")
     # A long run must not lose its work to an output problem found at its end.
     check_room(room_needed(scene, cameras, config, out, log_path, checkpoint_dir, args.save_views))
-    if not args.quiet and (config.proposal == "sd15" or config.optimize_geometry):
+    if not args.quiet and (config.proposal.backend == "sd15" or config.fit.optimize_geometry):
         import torch
 
         on_cpu = not torch.cuda.is_available()
@@ -291,23 +270,23 @@ def run(args) -> int:
         on_cpu = False
     # --device decides where sd15 runs; without it sd15 takes the GPU when there is one.
     sd15_on_cpu = on_cpu if device is None else not args.quiet and device.type == "cpu"
-    if sd15_on_cpu and config.proposal == "sd15":
+    if sd15_on_cpu and config.proposal.backend == "sd15":
         from ..method.proposal.sd15 import estimate_cpu_seconds
 
         estimate = estimate_cpu_seconds(
-            views=config.max_views or 16,
-            stages=config.stages,
-            updates_per_stage=config.updates_per_stage,
-            width=config.proposal_width,
-            height=config.proposal_height,
+            views=config.views.max_views or 16,
+            stages=config.schedule.stages,
+            updates_per_stage=config.schedule.updates_per_stage,
+            width=config.proposal.width,
+            height=config.proposal.height,
         )
         duration = f"{estimate / 3600:.1f} h" if estimate >= 3600 else f"{estimate / 60:.0f} min"
         print(
             f"note: sd15 on this CPU takes about {duration} for this schedule (estimate); the synth backend takes minutes",
             file=sys.stderr,
         )
-    if on_cpu and config.optimize_geometry:
-        steps = config.stages * config.fit_steps + config.post_steps
+    if on_cpu and config.fit.optimize_geometry:
+        steps = config.schedule.stages * config.fit.fit_steps + config.fit.post_steps
         print(
             f"note: geometry offsets are on: each of the {steps} fit steps renders every active view with "
             "gradients (about 0.6 s per view for a 270k-splat scene at 448x320 on 2 cores, so hours with 16 "

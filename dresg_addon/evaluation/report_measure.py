@@ -331,15 +331,15 @@ def stylize_with_log(scene, cameras, style, config, log_path: Path) -> tuple[obj
 def quick_config(config: StylizeConfig) -> StylizeConfig:
     """A preset shrunk for ``--quick``: at most 2 stages of 2 updates, 3 fit and 3 post steps, 2 active
     views, proposals at most 112x80."""
-    scale = min(1.0, 112 / config.proposal_width, 80 / config.proposal_height)
+    scale = min(1.0, 112 / config.proposal.width, 80 / config.proposal.height)
     return config.with_(
-        stages=min(config.stages, 2),
-        updates_per_stage=min(config.updates_per_stage, 2),
-        fit_steps=min(config.fit_steps, 3),
-        post_steps=min(config.post_steps, 3),
-        max_views=min(config.max_views or 2, 2),
-        proposal_width=max(16, round(config.proposal_width * scale)),
-        proposal_height=max(16, round(config.proposal_height * scale)),
+        stages=min(config.schedule.stages, 2),
+        updates_per_stage=min(config.schedule.updates_per_stage, 2),
+        fit_steps=min(config.fit.fit_steps, 3),
+        post_steps=min(config.fit.post_steps, 3),
+        max_views=min(config.views.max_views or 2, 2),
+        proposal_width=max(16, round(config.proposal.width * scale)),
+        proposal_height=max(16, round(config.proposal.height * scale)),
     )
 
 
@@ -351,8 +351,8 @@ def planned_runs(options: ReportOptions) -> list[tuple[str, str, StylizeConfig]]
     for count in options.stage_counts:
         base = PRESETS[DEFAULT_PRESET].with_(seed=options.seed, early_stop=0.0)
         config = shrink(base).with_(stages=count)
-        if count * config.updates_per_stage > config.ddim_steps:
-            raise ConfigError(f"stage count {count} needs more than {config.ddim_steps} DDIM steps")
+        if count * config.schedule.updates_per_stage > config.schedule.ddim_steps:
+            raise ConfigError(f"stage count {count} needs more than {config.schedule.ddim_steps} DDIM steps")
         runs.append((f"stages {count}", "stages", config))
     return runs
 
@@ -418,7 +418,10 @@ def convergence_run(records: list[RunRecord]) -> RunRecord | None:
     """The run with the most fit steps in all (ties: the first), whose log the convergence plot shows."""
     if not records:
         return None
-    return max(records, key=lambda r: (r.config.stages * r.config.fit_steps + r.config.post_steps, -records.index(r)))
+    return max(
+        records,
+        key=lambda r: (r.config.schedule.stages * r.config.fit.fit_steps + r.config.fit.post_steps, -records.index(r)),
+    )
 
 
 def _window(camera: Camera, quick: bool) -> tuple[int, int, int, int]:

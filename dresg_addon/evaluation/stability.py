@@ -91,7 +91,7 @@ def tiny_cameras() -> list[Camera]:
 
 def tiny_config(**changes) -> StylizeConfig:
     """One stage of two updates, two fit and two post steps, 16 x 16 proposals, geometry on."""
-    base = StylizeConfig(
+    base = StylizeConfig().with_(
         stages=1, updates_per_stage=2, fit_steps=2, post_steps=2, proposal_width=16, proposal_height=16
     )
     return base.with_(**changes)
@@ -228,7 +228,7 @@ def case_pcgrad_degenerate_gradients() -> CaseResult:
         "conflicting x 1e-30": (conflict * 1e-30).float(),
         "mixed 1 and 1e-30": torch.stack([g[0], -g[0] * 1e-30]).float(),
     }
-    eps = StylizeConfig().pcgrad_eps  # what the pipeline passes
+    eps = StylizeConfig().adam.pcgrad_eps  # what the pipeline passes
     observed, ok, fused = {}, True, {}
     for name, grads in cases.items():
         out = pcgrad_fuse(grads, eps)
@@ -374,7 +374,7 @@ def _case_scaled(factor: float) -> CaseResult:
     base = render_scene(scene, cameras[0], RasterSettings(near=0.01))
     scaled = render_scene(big, big_cameras[0], RasterSettings(near=near))
     default_near = render_scene(big, big_cameras[0], RasterSettings())
-    visibility = visibility_matrix(big, big_cameras, StylizeConfig(near=near).raster_settings()).to_dense()
+    visibility = visibility_matrix(big, big_cameras, StylizeConfig().with_(near=near).scene.raster()).to_dense()
     ok = _finite(scaled.rgb, scaled.depth, default_near.rgb, visibility)
     difference = _max_abs(scaled.rgb - base.rgb)
     depth_ratio = _max_abs(scaled.depth - base.depth * factor) / (factor * _max_abs(base.depth))
@@ -392,7 +392,7 @@ def _case_scaled(factor: float) -> CaseResult:
     extent = scaled_run.log[0]["scene_extent"]
     offsets = np.abs(scaled_run.scene.means.astype(np.float64) - big.means) / factor
     unscaled = np.abs(unscaled_run.scene.means.astype(np.float64) - scene.means)
-    bound = config.mean_bound * extent
+    bound = config.adam.mean_bound * extent
     observed["stylize: scene extent / scale factor"] = extent / factor
     observed["stylize: mean offset max / (bound x extent)"] = summary["stylize: mean offset max"] / bound
     observed["stylize: mean |offset| / unscaled run's"] = float(offsets.mean() / unscaled.mean())
@@ -480,7 +480,7 @@ def case_single_gaussian_covers_view() -> CaseResult:
     color_error = _max_abs(out.rgb - torch.from_numpy(expected.astype(np.float32)))
     near = replace(scene, means=np.array([[0.0, 0.0, 0.0101]], np.float32), log_scales=np.zeros((1, 3), np.float32))
     near_out = render_scene(near, cameras[0], RasterSettings())
-    visibility = visibility_matrix(scene, cameras, StylizeConfig().raster_settings()).to_dense()
+    visibility = visibility_matrix(scene, cameras, StylizeConfig().scene.raster()).to_dense()
     selection = select_active_views(scene, cameras, StylizeConfig())
     summary, finite, _ = _stylize_summary(scene, cameras, _style(), tiny_config(), "stylize: ")
     ok = _finite(out.rgb, out.alpha, out.visibility, near_out.rgb, near_out.alpha, visibility) and finite

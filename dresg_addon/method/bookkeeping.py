@@ -114,11 +114,11 @@ def prior_costs(config) -> dict[str, float]:
     """:data:`PRIOR_COSTS` for a run of ``config`` (a StylizeConfig): Adam fits cost a render with gradients per
     step and view, sd15 proposals tens of renders per latent update."""
     costs = dict(PRIOR_COSTS)
-    if not config.solves_colors():
-        costs["fit"] = 0.8 * max(config.fit_steps, 1)
-        costs["post"] = 0.8 * max(config.post_steps, 1)
-    if config.proposal == "sd15":
-        costs["proposal"] = 20.0 * config.updates_per_stage
+    if not config.fit.solves_colors():
+        costs["fit"] = 0.8 * max(config.fit.fit_steps, 1)
+        costs["post"] = 0.8 * max(config.fit.post_steps, 1)
+    if config.proposal.backend == "sd15":
+        costs["proposal"] = 20.0 * config.schedule.updates_per_stage
     return costs
 
 

@@ -1,9 +1,13 @@
 """The method's settings as one typed dataclass with the paper's defaults; presets are instances.
 
-The CLI and the Blender panel are thin layers over :class:`StylizeConfig`. It enters a run once, at
-:func:`~dresg_addon.method.loop.stylize` (or :func:`~dresg_addon.method.views.select_active_views`); each
-step then receives its own part (``raster_settings``, ``view_selection``, ``loss_weights``,
-``optimizer_settings``), so no other method module imports this one.
+The CLI and the Blender panel are thin layers over :class:`StylizeConfig`, a dataclass of typed groups:
+``schedule``, ``proposal``, ``fit``, ``solve`` (the solved colour fit), ``adam`` (the Adam fit), ``views``,
+``scene`` and ``ablation`` (the paper's ablations, for bench/ablation.py). Callers name a setting flat
+(``stages``, ``solve_anchor``: the CLI's, the presets' and the logs' names) or dotted (``solve.anchor``).
+It enters a run once, at :func:`~dresg_addon.method.loop.stylize` (or
+:func:`~dresg_addon.method.views.select_active_views`); each step then receives its own part
+(``scene.raster()``, ``views.selection()``, ``adam.loss_weights()``, ``solve.settings()``), so no other
+method module imports this one.
 
 Lengths. The paper's geometry numbers (mean-offset lr 1e-3, bound +-0.05; REFERENCE.md Sec. 2) are
 absolute lengths in its scenes' units, where a scene is about a unit to a few units across. Here the
@@ -19,7 +23,7 @@ quaternion offsets are scale-free and use their numbers as they are.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 from ..util.errors import ConfigError
 
@@ -29,19 +33,49 @@ SH_REST_MODES = ("keep", "zero")
 COLOR_FITS = ("solve", "adam")
 
 
+def _check(checks) -> None:
+    for ok, message in checks:
+        if not ok:
+            raise ConfigError(f"invalid setting: {message}")
+
+
 @dataclass(frozen=True)
-class StylizeConfig:
-    # Schedule (Sec. 4.2, Algorithm 1): N = stages x updates DDIM states out of a 200-step schedule.
+class ScheduleSettings:
+    """Sec. 4.2, Algorithm 1: N = stages x updates DDIM states out of a ``ddim_steps`` schedule."""
+
     stages: int = 20
     updates_per_stage: int = 10
     ddim_steps: int = 200
-    schedule: str = "snr-balanced"  # residual strength: snr-balanced | fixed-1 | fixed-2 | triangle | timestep-cosine
-    logit_space: bool = True  # False: the image-space scaling ablation
-    # Proposal (Sec. 4.1)
-    proposal: str = "synth"  # synth | sd15
+    strength: str = "snr-balanced"  # residual strength: snr-balanced | fixed-1 | fixed-2 | triangle | timestep-cosine
+    # Leaving out what a scene does not need: stop the stages once the style distance of the active
+    # views (7x7 patch sliced Wasserstein to the style, covered pixels, at the proposal size) improves
+    # by less than this fraction over two stages (loop.stage_improvement); 0 runs every stage.
+    # The post stage always runs.
+    early_stop: float = 0.0
+
+    def __post_init__(self) -> None:
+        _check(
+            [
+                (self.stages >= 1, "stages must be >= 1"),
+                (self.updates_per_stage >= 1, "updates_per_stage must be >= 1"),
+                (
+                    self.stages * self.updates_per_stage <= self.ddim_steps,
+                    "stages x updates_per_stage exceeds ddim_steps",
+                ),
+                (self.strength in SCHEDULES, f"schedule must be one of {', '.join(SCHEDULES)}"),
+                (0 <= self.early_stop < 1, "early_stop must be in [0, 1) (0: off)"),
+            ],
+        )
+
+
+@dataclass(frozen=True)
+class ProposalSettings:
+    """Sec. 4.1: the backend that proposes each view's stylized image, and what it is asked for."""
+
+    backend: str = "synth"  # synth | sd15
     model_path: str = ""  # local SD1.5 folder or .safetensors (sd15 only)
-    proposal_width: int = 448
-    proposal_height: int = 320
+    width: int = 448
+    height: int = 320
     # Stroke Size: the painting's scale against the view. 1: the painting resampled to the proposal size; 2: to
     # twice that on each side, so its strokes come out twice as large in the views (and the synth backend's
     # content sigma, below which the painting's texture replaces the scene's, twice as wide).
@@ -51,115 +85,122 @@ class StylizeConfig:
     # comes from the painting. Each backend maps it to its own content weight w_c (loop.synth_content_weight,
     # loop.sd15_content_weight): 0.5 is sd15's paper w_c 0.15 and the synth backend's w_c 1.
     scene_weight: float = 0.5
-    latent_lr: float = 0.05
-    use_content_query: bool = True  # ablation "w/o Q_c" when False
-    use_style_keys: bool = True  # ablation "w/o K_s"
-    use_style_values: bool = True  # ablation "w/o V_s"
-    feedback: bool = True  # ablation "w/o feedback": keep optimising the first latent
     # How strongly a view keeps to what earlier views proposed (synth); 0: views alone. 16 rather than 4: marks that
     # agree are what the fit keeps (bonsai x Starry Night, preview: the capture's texture kept 0.27 -> 0.22)
     guide_weight: float = 16.0
-    # Fitting (Sec. 4.3). With geometry frozen the fit is solved ("solve": bounded least squares over all
-    # active views, method/color_solve.py); "adam" takes the paper's fixed Adam steps of Eq. 16 instead,
-    # as every geometry-on run does.
+    latent_lr: float = 0.05  # Adam on the latent (sd15 only)
+
+    def __post_init__(self) -> None:
+        _check(
+            [
+                (self.backend in PROPOSALS, f"proposal must be one of {', '.join(PROPOSALS)}"),
+                (self.width >= 8 and self.height >= 8, "proposal size must be at least 8x8"),
+                (
+                    math.isfinite(self.stroke_size) and 0.25 <= self.stroke_size <= 8,
+                    f"stroke_size must be in [0.25, 8] (got {self.stroke_size})",
+                ),
+                (0 <= self.scene_weight <= 1, f"scene_weight must be in [0, 1] (got {self.scene_weight})"),
+                (self.guide_weight >= 0 and math.isfinite(self.guide_weight), "guide_weight must be >= 0"),
+            ],
+        )
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Sec. 4.3: how each stage's targets are fitted. With geometry frozen the fit is solved ("solve": bounded
+    least squares over all active views, method/color_solve.py); "adam" takes the paper's fixed Adam steps of
+    Eq. 16 instead, as every geometry-on run does."""
+
     color_fit: str = "solve"  # solve | adam
+    optimize_geometry: bool = True
     fit_steps: int = 30  # Adam steps per stage (geometry on, or color_fit="adam")
     post_steps: int = 50  # after covariance colour transfer: Adam steps as fit_steps; 0 leaves the post stage out
-    solve_tolerance: float = 0.005  # a solve stops when a round lowers its objective by less than this fraction
-    solve_rounds: int = 6  # projected Newton-CG rounds per solve, at most
-    solve_cg_iterations: int = 8  # conjugate-gradient iterations per round
-    robust_power: float = 2.0  # r of sum |render - target|^r over the views' pixels: 2 least squares, < 2 robust
+
+    def __post_init__(self) -> None:
+        _check(
+            [
+                (self.color_fit in COLOR_FITS, f"color_fit must be one of {', '.join(COLOR_FITS)}"),
+                (self.fit_steps >= 0 and self.post_steps >= 0, "fit_steps and post_steps must be >= 0"),
+            ],
+        )
+
+    def solves_colors(self) -> bool:
+        """Whether the fit is solved (colour-only, ``color_fit="solve"``) rather than taken in Adam steps."""
+        return self.color_fit == "solve" and not self.optimize_geometry
+
+
+@dataclass(frozen=True)
+class SolveSettings:
+    """The solved colour fit (``FitSettings.solves_colors``): method/color_solve.py."""
+
+    tolerance: float = 0.005  # a solve stops when a round lowers its objective by less than this fraction
+    rounds: int = 6  # projected Newton-CG rounds per solve, at most
+    cg_iterations: int = 8  # conjugate-gradient iterations per round
     # mu of the solve's pull toward the colours it starts from (color_solve.py): splats the views barely see
     # keep their colour instead of showing one view's faint samples from every other angle; 0: none.
-    solve_anchor: float = 0.3
-    # beta of the colour solve's blend-variance term (color_solve): the splats blended in one pixel pulled to one
-    # colour, so layered splats cannot hold colours that mix right only from the active views; 0 (off) in every
-    # preset: on the bonsai 0.5 cut the novel views' warp error by 30% and cost 8-10% of patch SW (texture)
-    layer_agreement: float = 0.0
-    # Also solve each stage's targets without anchor or robust weights, to log the joint least-squares optimum
-    # beside the fit (a second solve per stage; the quality bench turns it on).
-    log_optimum: bool = False
+    anchor: float = 0.3
+
+    def __post_init__(self) -> None:
+        _check(
+            [
+                (0 < self.tolerance < 1, "solve_tolerance must be in (0, 1)"),
+                (self.rounds >= 1 and self.cg_iterations >= 1, "solve_rounds and solve_cg_iterations must be >= 1"),
+                (self.anchor >= 0 and math.isfinite(self.anchor), "solve_anchor must be >= 0"),
+            ],
+        )
+
+    def settings(self):
+        """The bounded least-squares colour fit's own settings."""
+        from .color_solve import ColorSolveSettings
+
+        return ColorSolveSettings(
+            tolerance=self.tolerance, max_rounds=self.rounds, cg_iterations=self.cg_iterations, anchor=self.anchor
+        )
+
+
+@dataclass(frozen=True)
+class AdamSettings:
+    """The paper's Adam fit (Eq. 16): geometry-on runs, ``color_fit="adam"`` and the post stage."""
+
     color_lr: float = 0.05
     geometry_lr: float = 1e-3  # mean offsets: x the scene extent (see the module docstring)
-    optimize_geometry: bool = True
     mean_bound: float = 0.05  # x the scene extent
     log_scale_bound: float = 0.05
     quat_bound: float = 0.02
-    pcgrad: bool = True  # ablation "w/o colour-gradient projection" when False
     pcgrad_eps: float = 1e-12
     lambda_ssim: float = 0.2
     lambda_tv: float = 0.01
     lambda_feature: float = 0.01
     dino_path: str = ""  # local DINO weights for the feature loss; empty: patch features
-    render_scale: float = 1.0  # render resolution relative to the cameras' own
-    scene_extent: float = 0.0  # the length mean offsets are relative to; 0: measured (optim.scene_extent)
-    # View selection (Sec. 4.3)
+
+    def loss_weights(self):
+        """The lambdas of the fit loss (Eq. 16)."""
+        from .losses import FitLossWeights
+
+        return FitLossWeights(dssim=self.lambda_ssim, tv=self.lambda_tv, feature=self.lambda_feature)
+
+    def optimizer(self, extent: float):
+        """Adam learning rates and geometry bounds, mean offsets scaled by the scene ``extent``."""
+        from .optim import FitOptimizerSettings, GeometryBounds
+
+        bounds = GeometryBounds(self.mean_bound, self.log_scale_bound, self.quat_bound)
+        return FitOptimizerSettings(self.color_lr, self.geometry_lr, bounds=bounds, extent=extent)
+
+
+@dataclass(frozen=True)
+class ViewSettings:
+    """Sec. 4.3's active-view selection."""
+
     max_views: int = 0  # 0: no cap
     w_min: float = 1e-4
     rho: float = 0.98
     coverage_stop: float = 0.9999
     gain_threshold: float = 0.001
-    # Leaving out what a scene does not need: stop the stages once the style distance of the active
-    # views (7x7 patch sliced Wasserstein to the style, covered pixels, at the proposal size) improves
-    # by less than this fraction over two stages (loop.stage_improvement); 0 runs every stage.
-    # The post stage always runs.
-    early_stop: float = 0.0
-    # Scene handling
-    sh_rest: str = "zero"  # keep | zero: what happens to view-dependent SH bands of a stylized scene
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    near: float = 0.01
-    seed: int = 0
 
     def __post_init__(self) -> None:
-        checks = [
-            (self.stages >= 1, "stages must be >= 1"),
-            (self.updates_per_stage >= 1, "updates_per_stage must be >= 1"),
-            (self.stages * self.updates_per_stage <= self.ddim_steps, "stages x updates_per_stage exceeds ddim_steps"),
-            (self.schedule in SCHEDULES, f"schedule must be one of {', '.join(SCHEDULES)}"),
-            (self.proposal in PROPOSALS, f"proposal must be one of {', '.join(PROPOSALS)}"),
-            (self.sh_rest in SH_REST_MODES, f"sh_rest must be one of {', '.join(SH_REST_MODES)}"),
-            (self.color_fit in COLOR_FITS, f"color_fit must be one of {', '.join(COLOR_FITS)}"),
-            (0 < self.solve_tolerance < 1, "solve_tolerance must be in (0, 1)"),
-            (
-                self.solve_rounds >= 1 and self.solve_cg_iterations >= 1,
-                "solve_rounds and solve_cg_iterations must be >= 1",
-            ),
-            (0 < self.robust_power <= 2, "robust_power must be in (0, 2]"),
-            (self.solve_anchor >= 0 and math.isfinite(self.solve_anchor), "solve_anchor must be >= 0"),
-            (self.layer_agreement >= 0 and math.isfinite(self.layer_agreement), "layer_agreement must be >= 0"),
-            (self.guide_weight >= 0 and math.isfinite(self.guide_weight), "guide_weight must be >= 0"),
-            (self.fit_steps >= 0 and self.post_steps >= 0, "fit_steps and post_steps must be >= 0"),
-            (self.proposal_width >= 8 and self.proposal_height >= 8, "proposal size must be at least 8x8"),
-            (self.render_scale > 0, "render_scale must be > 0"),
-            (0 < self.rho <= 1, "rho must be in (0, 1]"),
-            (self.near > 0, "near must be > 0"),
-            (self.scene_extent >= 0 and math.isfinite(self.scene_extent), "scene_extent must be >= 0 (0: measured)"),
-            (0 <= self.early_stop < 1, "early_stop must be in [0, 1) (0: off)"),
-            (
-                math.isfinite(self.stroke_size) and 0.25 <= self.stroke_size <= 8,
-                f"stroke_size must be in [0.25, 8] (got {self.stroke_size})",
-            ),
-            (0 <= self.scene_weight <= 1, f"scene_weight must be in [0, 1] (got {self.scene_weight})"),
-        ]
-        for ok, message in checks:
-            if not ok:
-                raise ConfigError(f"invalid setting: {message}")
+        _check([(0 < self.rho <= 1, "rho must be in (0, 1]")])
 
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    def with_(self, **changes) -> StylizeConfig:
-        return replace(self, **changes)
-
-    # The part of the settings each step of the loop receives (each step's own typed settings).
-
-    def raster_settings(self):
-        """What every render of the run uses: near plane and background."""
-        from ..raster import RasterSettings
-
-        return RasterSettings(near=self.near, background=tuple(self.background))
-
-    def view_selection(self):
+    def selection(self):
         """Sec. 4.3's selection constants (w_min, rho, stops) and the view cap."""
         from .views import ViewSelectionSettings
 
@@ -171,51 +212,149 @@ class StylizeConfig:
             max_views=self.max_views or None,
         )
 
-    def loss_weights(self):
-        """The lambdas of the fit loss (Eq. 16)."""
-        from .losses import FitLossWeights
 
-        return FitLossWeights(dssim=self.lambda_ssim, tv=self.lambda_tv, feature=self.lambda_feature)
+@dataclass(frozen=True)
+class SceneSettings:
+    """How the scene is rendered and written back."""
 
-    def solve_settings(self):
-        """The bounded least-squares colour fit's tolerance, rounds and robustness."""
-        from .color_solve import ColorSolveSettings
+    sh_rest: str = "zero"  # keep | zero: what happens to view-dependent SH bands of a stylized scene
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    near: float = 0.01
+    render_scale: float = 1.0  # render resolution relative to the cameras' own
+    scene_extent: float = 0.0  # the length mean offsets are relative to; 0: measured (optim.scene_extent)
 
-        return ColorSolveSettings(
-            tolerance=self.solve_tolerance,
-            max_rounds=self.solve_rounds,
-            cg_iterations=self.solve_cg_iterations,
-            robust_power=self.robust_power,
-            anchor=self.solve_anchor,
-            layer_agreement=self.layer_agreement,
+    def __post_init__(self) -> None:
+        _check(
+            [
+                (self.sh_rest in SH_REST_MODES, f"sh_rest must be one of {', '.join(SH_REST_MODES)}"),
+                (self.render_scale > 0, "render_scale must be > 0"),
+                (self.near > 0, "near must be > 0"),
+                (
+                    self.scene_extent >= 0 and math.isfinite(self.scene_extent),
+                    "scene_extent must be >= 0 (0: measured)",
+                ),
+            ],
         )
 
-    def solves_colors(self) -> bool:
-        """Whether the fit is solved (colour-only, ``color_fit="solve"``) rather than taken in Adam steps."""
-        return self.color_fit == "solve" and not self.optimize_geometry
+    def raster(self):
+        """What every render of the run uses: near plane and background."""
+        from ..raster import RasterSettings
 
-    def optimizer_settings(self, extent: float):
-        """Adam learning rates and geometry bounds, mean offsets scaled by the scene ``extent``."""
-        from .optim import FitOptimizerSettings, GeometryBounds
+        return RasterSettings(near=self.near, background=tuple(self.background))
 
-        bounds = GeometryBounds(self.mean_bound, self.log_scale_bound, self.quat_bound)
-        return FitOptimizerSettings(self.color_lr, self.geometry_lr, bounds=bounds, extent=extent)
+
+@dataclass(frozen=True)
+class AblationSettings:
+    """The paper's ablations (Sec. 5), all on in every preset; only bench/ablation.py turns one off."""
+
+    logit_space: bool = True  # False: the image-space scaling ablation
+    use_content_query: bool = True  # False: "w/o Q_c"
+    use_style_keys: bool = True  # False: "w/o K_s" (sd15 only)
+    use_style_values: bool = True  # False: "w/o V_s" (sd15 only)
+    feedback: bool = True  # False: "w/o feedback", keep optimising the first latent
+    pcgrad: bool = True  # False: "w/o colour-gradient projection"
+
+
+GROUPS = {
+    "schedule": ScheduleSettings,
+    "proposal": ProposalSettings,
+    "fit": FitSettings,
+    "solve": SolveSettings,
+    "adam": AdamSettings,
+    "views": ViewSettings,
+    "scene": SceneSettings,
+    "ablation": AblationSettings,
+}
+# Settings whose flat name (the CLI's, the presets', the logs') is not their name in their group.
+_FLAT_RENAMES = {
+    ("schedule", "strength"): "schedule",
+    ("proposal", "backend"): "proposal",
+    ("proposal", "width"): "proposal_width",
+    ("proposal", "height"): "proposal_height",
+    ("solve", "tolerance"): "solve_tolerance",
+    ("solve", "rounds"): "solve_rounds",
+    ("solve", "cg_iterations"): "solve_cg_iterations",
+    ("solve", "anchor"): "solve_anchor",
+}
+# flat name -> (group, name in the group); ``seed`` belongs to no group.
+FLAT_NAMES: dict[str, tuple[str | None, str]] = {
+    _FLAT_RENAMES.get((group, f.name), f.name): (group, f.name) for group, kind in GROUPS.items() for f in fields(kind)
+}
+FLAT_NAMES["seed"] = (None, "seed")
+# Settings earlier versions had, at the one value this code runs: a checkpoint's run id still counts them, so
+# checkpoints written before they went still resume. Removed: the solve's layer agreement (costs 8-10% of
+# patch SW, bench/README.md), robust_power < 2 (same SW as least squares at 1.6x the time), log_optimum (a
+# diagnostic of the quality bench, now ``stylize(log_optimum=True)``).
+RETIRED = {"layer_agreement": 0.0, "robust_power": 2.0, "log_optimum": False}
+
+
+def setting_path(name: str) -> tuple[str | None, str]:
+    """(group, name in the group) of a setting named flat (``solve_anchor``) or dotted (``solve.anchor``)."""
+    group, dot, leaf = name.partition(".")
+    if dot and group in GROUPS and leaf in {f.name for f in fields(GROUPS[group])}:
+        return group, leaf
+    if not dot and name in FLAT_NAMES:
+        return FLAT_NAMES[name]
+    raise ConfigError(f"unknown setting {name!r}")
+
+
+@dataclass(frozen=True)
+class StylizeConfig:
+    """Every setting of a run, by group. ``with_``, :func:`preset` and ``to_dict`` name settings flat
+    (``stages``, ``solve_anchor``) or dotted (``solve.anchor``)."""
+
+    schedule: ScheduleSettings = ScheduleSettings()
+    proposal: ProposalSettings = ProposalSettings()
+    fit: FitSettings = FitSettings()
+    solve: SolveSettings = SolveSettings()
+    adam: AdamSettings = AdamSettings()
+    views: ViewSettings = ViewSettings()
+    scene: SceneSettings = SceneSettings()
+    ablation: AblationSettings = AblationSettings()
+    seed: int = 0
+
+    def with_(self, **changes) -> StylizeConfig:
+        """A copy with settings changed, named flat or dotted: ``with_(stages=6, **{"solve.anchor": 1.0})``."""
+        groups: dict[str, dict] = {}
+        top = {}
+        for name, value in changes.items():
+            group, leaf = setting_path(name)
+            if group is None:
+                top[leaf] = value
+            else:
+                groups.setdefault(group, {})[leaf] = value
+        for group, values in groups.items():
+            top[group] = replace(getattr(self, group), **values)
+        return replace(self, **top)
+
+    def value(self, name: str):
+        """One setting, named flat or dotted."""
+        group, leaf = setting_path(name)
+        return getattr(self if group is None else getattr(self, group), leaf)
+
+    def to_dict(self) -> dict:
+        """Every setting by its flat name (what logs, reports and run ids hold)."""
+        return {name: self.value(name) for name in FLAT_NAMES}
+
+    def run_values(self) -> dict:
+        """What a checkpoint's run id hashes: the flat settings and the retired ones at their one value."""
+        return {**RETIRED, **self.to_dict()}
 
 
 def check_run_settings(config: StylizeConfig) -> None:
     """Raise ConfigError for settings that are valid on their own but cannot run (checked before any work)."""
-    if config.proposal == "synth" and not (config.use_style_keys and config.use_style_values):
+    proposal = config.proposal
+    if proposal.backend == "synth" and not (config.ablation.use_style_keys and config.ablation.use_style_values):
         raise ConfigError(
             "the w/o K_s and w/o V_s ablations change the attention energy; the synth backend has none "
             "(use --proposal sd15 for them)"
         )
-    if config.proposal == "sd15":
-        if not config.model_path:
+    if proposal.backend == "sd15":
+        if not proposal.model_path:
             raise ConfigError("the sd15 proposal backend needs a local model path (--model PATH)")
-        if config.proposal_width % 8 or config.proposal_height % 8:
+        if proposal.width % 8 or proposal.height % 8:
             raise ConfigError(
-                f"the sd15 proposal size must be a multiple of 8 (got {config.proposal_width}x"
-                f"{config.proposal_height}), e.g. 448x320"
+                f"the sd15 proposal size must be a multiple of 8 (got {proposal.width}x{proposal.height}), e.g. 448x320"
             )
 
 
@@ -224,7 +363,7 @@ PRESETS: dict[str, StylizeConfig] = {
     "paper": StylizeConfig(),
     # The paper's schedule with geometry frozen: fitting takes the colour-only fast path (a sparse
     # multiply per view instead of a full re-render), which makes the paper's schedule practical on a CPU.
-    "cpu": StylizeConfig(optimize_geometry=False),
+    "cpu": StylizeConfig().with_(optimize_geometry=False),
     # What ``stylize`` runs by default: the quality plateau of the synth backend on a CPU. One synthesis
     # pass per stage, each followed by the solved multi-view fit (Kwatra's EM with the fit as its M-step),
     # stopping once the look settles. Paint <-> Scene 0.5 (the synth backend's content weight 1) keeps objects
@@ -235,7 +374,7 @@ PRESETS: dict[str, StylizeConfig] = {
     # no post stage: the synthesis already matches the painting's colours after every pass, and the covariance
     # map plus its fit undid the last proposals (patch SW 16-21% further on the bonsai, 20-30% on Luigi, the
     # demo scene within 1%).
-    "standard": StylizeConfig(
+    "standard": StylizeConfig().with_(
         stages=12,
         updates_per_stage=1,
         fit_steps=30,
@@ -247,7 +386,7 @@ PRESETS: dict[str, StylizeConfig] = {
         early_stop=0.01,
     ),
     # A quick look: half the stages and views.
-    "preview": StylizeConfig(
+    "preview": StylizeConfig().with_(
         stages=6,
         updates_per_stage=1,
         fit_steps=15,
@@ -268,7 +407,11 @@ PRESET_INFO: dict[str, tuple[str, str, str]] = {
     "standard": ("Standard", "The default", "about 2-3 min for 273k splats on 2 cores"),
     "preview": ("Preview", "A quick look", "about 1 min for 273k splats on 2 cores"),
     "paper": ("Paper (GPU)", "The paper's exact settings", "hours on a CPU: use a GPU"),
-    "cpu": ("Paper, Colours Only", "The paper's schedule, fitting colours only", "about 15 min for 273k splats on 2 cores"),
+    "cpu": (
+        "Paper, Colours Only",
+        "The paper's schedule, fitting colours only",
+        "about 15 min for 273k splats on 2 cores",
+    ),
 }
 
 
@@ -280,17 +423,19 @@ def preset_description(name: str) -> str:
     """One line on what preset ``name`` runs, read from its settings, and how long it takes."""
     config = PRESETS[name]
     _, purpose, measured = PRESET_INFO[name]
-    stages = f"up to {config.stages} stages" if config.early_stop > 0 else f"{config.stages} stages"
-    if config.updates_per_stage > 1:
-        stages += f" of {config.updates_per_stage} updates"
-    if config.early_stop > 0:
+    schedule, max_views = config.schedule, config.views.max_views
+    stages = f"up to {schedule.stages} stages" if schedule.early_stop > 0 else f"{schedule.stages} stages"
+    if schedule.updates_per_stage > 1:
+        stages += f" of {schedule.updates_per_stage} updates"
+    if schedule.early_stop > 0:
         stages += ", stopping once the look settles"
-    views = f"up to {config.max_views} views" if config.max_views else "every view the coverage selection picks"
-    fit = "geometry offsets on" if config.optimize_geometry else "colours only"
+    views = f"up to {max_views} views" if max_views else "every view the coverage selection picks"
+    fit = "geometry offsets on" if config.fit.optimize_geometry else "colours only"
     return f"{purpose}: {stages}; {views}; {fit}. {measured[0].upper()}{measured[1:]}"
 
 
 def preset(name: str, **overrides) -> StylizeConfig:
+    """Preset ``name`` with settings changed, named flat or dotted as in :meth:`StylizeConfig.with_`."""
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r} (choose {', '.join(PRESETS)})")
     return PRESETS[name].with_(**overrides)

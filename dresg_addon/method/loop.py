@@ -89,6 +89,7 @@ def stylize(
     strength: float = 1.0,
     mask: np.ndarray | None = None,  # [N] bool, or the indices of the splats to stylize
     device: str | torch.device | None = None,  # where the networks run (sd15, DINO); None: sd15's GPU, DINO's CPU
+    log_optimum: bool = False,  # also log each stage's unanchored joint optimum (a second solve; the quality bench)
 ) -> StylizeResult:
     """Algorithm 1 of the paper, returning the stylized scene (the input is never modified).
 
@@ -105,7 +106,7 @@ def stylize(
     mask = selection_mask(mask, len(scene), config)
     hooks = RunHooks(progress, on_stage, cancel, messages)
     record = RunRecord(checkpoint_dir, log_path, save_views_dir)
-    run = Stylization(scene, style_rgb, config, hooks, record, mask, device)
+    run = Stylization(scene, style_rgb, config, hooks, record, mask, device, log_optimum)
     run.select_views(cameras, views)  # Sec. 4.3, Eqs. 13-15: active views by capped coverage
     run.prepare(content_images)  # seen Gaussians, base renders, content views, proposal states
     for stage in run.remaining_stages():  # Sec. 4.2: the DDIM states in stages, gamma_n per stage
@@ -127,7 +128,7 @@ def selection_mask(mask, count: int, config: StylizeConfig) -> np.ndarray | None
     or when the run would move geometry (the selection's neighbours are drawn with fixed colours only)."""
     if mask is None:
         return None
-    if config.optimize_geometry:
+    if config.fit.optimize_geometry:
         raise ConfigError("stylizing a selection needs geometry frozen (a colour-only preset, or --no-geometry)")
     array = np.asarray(mask)
     if array.dtype == bool:
@@ -183,16 +184,16 @@ def _proposal_backend(config: StylizeConfig, device):
     backend that has them, the stroke scale to synth, the ``device`` to sd15 (synth has no network)."""
     from .proposal import EnergyTerms, make_backend
 
-    if config.proposal == "synth":
-        weight = synth_content_weight(config.scene_weight) if config.use_content_query else 0.0
+    if config.proposal.backend == "synth":
+        weight = synth_content_weight(config.proposal.scene_weight) if config.ablation.use_content_query else 0.0
         return make_backend("synth", seed=config.seed, content_weight=weight, content_sigma=stroke_sigma(config))
-    backend = make_backend("sd15", model_path=config.model_path, device=device)
-    backend.learning_rate = config.latent_lr
+    backend = make_backend("sd15", model_path=config.proposal.model_path, device=device)
+    backend.learning_rate = config.proposal.latent_lr
     backend.terms = EnergyTerms(
-        sd15_content_weight(config.scene_weight),
-        config.use_content_query,
-        config.use_style_keys,
-        config.use_style_values,
+        sd15_content_weight(config.proposal.scene_weight),
+        config.ablation.use_content_query,
+        config.ablation.use_style_keys,
+        config.ablation.use_style_values,
     )
     return backend
 
@@ -202,14 +203,14 @@ def stroke_sigma(config: StylizeConfig) -> float:
     scene's forms act above it, the painting's texture below it)."""
     from .proposal.synth import SynthSettings
 
-    return SynthSettings.content_sigma * config.stroke_size
+    return SynthSettings.content_sigma * config.proposal.stroke_size
 
 
 def style_size(config: StylizeConfig) -> tuple[int, int]:
     """(height, width) the painting is resampled to: the proposal size x Stroke Size, each side rounded."""
     return (
-        max(1, round(config.stroke_size * config.proposal_height)),
-        max(1, round(config.stroke_size * config.proposal_width)),
+        max(1, round(config.proposal.stroke_size * config.proposal.height)),
+        max(1, round(config.proposal.stroke_size * config.proposal.width)),
     )
 
 
@@ -224,15 +225,15 @@ def stroke_size_note(footprint: float | None, config: StylizeConfig, fit_scale: 
     :func:`stroke_sigma` (proposal pixels) x ``fit_scale`` (fit pixels per proposal pixel). The line suggests the
     smallest of :data:`STROKE_SIZES` whose strokes reach the splats, or says that even the largest does not.
     """
-    if footprint is None or config.proposal != "synth":
+    if footprint is None or config.proposal.backend != "synth":
         return None
     per_size = stroke_sigma(config.with_(stroke_size=1.0)) * fit_scale  # stroke pixels at Stroke Size 1
-    strokes = per_size * config.stroke_size
+    strokes = per_size * config.proposal.stroke_size
     if footprint <= strokes:
         return None
     line = (
         f"the scene's splats are about {_pixels(footprint)} px wide at the fit size, wider than the strokes at "
-        f"Stroke Size {config.stroke_size:g} ({_pixels(strokes)} px): they will show the painting's colours and "
+        f"Stroke Size {config.proposal.stroke_size:g} ({_pixels(strokes)} px): they will show the painting's colours and "
         "regions more than its marks; "
     )
     larger = [size for size in STROKE_SIZES if size * per_size >= footprint]
@@ -284,16 +285,19 @@ class Stylization:
         record: RunRecord,
         mask: np.ndarray | None = None,  # [N] bool: the selection to stylize (None: every splat)
         device: str | torch.device | None = None,  # where the networks run, as stylize() says
+        log_optimum: bool = False,  # as stylize() says
     ):
         self.scene, self.config, self.hooks, self.record, self.mask = scene, config, hooks, record, mask
-        self.device = device
+        self.device, self.log_optimum = device, log_optimum
         self.style_rgb = _checked_style(style_rgb)
         check_run_settings(config)
-        self.size = (config.proposal_height, config.proposal_width)
+        self.size = (config.proposal.height, config.proposal.width)
         torch.manual_seed(config.seed)
-        self.stages = stage_timesteps(config.stages, config.updates_per_stage, config.ddim_steps)
-        self.gammas = stage_gammas(config.schedule, self.stages)
-        hooks.plan(len(self.stages), config.post_steps > 0, prior_costs(config))
+        self.stages = stage_timesteps(
+            config.schedule.stages, config.schedule.updates_per_stage, config.schedule.ddim_steps
+        )
+        self.gammas = stage_gammas(config.schedule.strength, self.stages)
+        hooks.plan(len(self.stages), config.fit.post_steps > 0, prior_costs(config))
 
     # --- Before the stages ---------------------------------------------------------------------------------
 
@@ -301,7 +305,9 @@ class Stylization:
         """Sec. 4.3: the active views by capped coverage (Eqs. 13-15), or the given ones."""
         hooks, nan = self.hooks, float("nan")
         if views is None:
-            hooks.model.set_counts(cameras=len(cameras), views=min(len(cameras), self.config.max_views or len(cameras)))
+            hooks.model.set_counts(
+                cameras=len(cameras), views=min(len(cameras), self.config.views.max_views or len(cameras))
+            )
 
             def each_camera(done: int, total: int) -> None:
                 hooks.report(0, done, total, "select", nan, f"selecting views: {done}/{total} cameras rendered")
@@ -317,7 +323,7 @@ class Stylization:
                 raise CameraError(f"active views {list(views)} do not index the {len(cameras)} cameras")
             self.selection = ActiveViews(list(views), [], [], "given")
         chosen = [cameras[v] for v in self.selection.indices]
-        self.cameras = scaled_cameras(chosen, self.config.render_scale)
+        self.cameras = scaled_cameras(chosen, self.config.scene.render_scale)
         self.names = [cameras[v].name or f"view_{v:03d}" for v in self.selection.indices]
         hooks.model.set_counts(views=len(self.cameras))
         self.hooks.say(f"active views: {len(self.cameras)} of {len(cameras)} ({self.selection.reason})")
@@ -352,8 +358,8 @@ class Stylization:
         """The Gaussians the active views see, their fit state, renderer and optimiser; the base renders.
         ``each_view(done)`` after each view's render (the last one: the fit's set-up follows)."""
         config, say = self.config, self.hooks.say
-        raster = config.raster_settings()
-        seen, fast = seen_gaussians(self.scene, self.cameras, raster, config.optimize_geometry, each_view)
+        raster = config.scene.raster()
+        seen, fast = seen_gaussians(self.scene, self.cameras, raster, config.fit.optimize_geometry, each_view)
         left_out = len(self.scene) - seen.numel()
         if self.mask is not None:
             seen = seen[torch.from_numpy(self.mask)[seen]]
@@ -368,22 +374,22 @@ class Stylization:
                 f"optimising {seen.numel()} of {len(self.scene)} Gaussians "
                 f"({left_out} unseen by the active views are left out)"
             )
-        self.state = state = FitState.start(self.scene, seen, config.optimize_geometry)
+        self.state = state = FitState.start(self.scene, seen, config.fit.optimize_geometry)
         self.renderer = ViewRenderer(
-            self.scene, self.cameras, seen, raster, config.sh_rest == "keep", fast, self.mask is not None
+            self.scene, self.cameras, seen, raster, config.scene.sh_rest == "keep", fast, self.mask is not None
         )
-        if config.solves_colors():
+        if config.fit.solves_colors():
             say(f"colour fit: bounded least squares over the {len(self.cameras)} active views, solved each stage")
             features = None  # Eq. 16's L1, DSSIM, TV and feature terms shape gradient fits only
         else:
-            features = feature_extractor(config.lambda_feature, config.dino_path, say, self.device or "cpu")
+            features = feature_extractor(config.adam.lambda_feature, config.adam.dino_path, say, self.device or "cpu")
         # Mean offsets are relative to the scene's extent (config docstring): lr and bound x extent.
         seen_numpy = seen.numpy()
-        self.extent = config.scene_extent or scene_extent(
+        self.extent = config.scene.scene_extent or scene_extent(
             self.scene.means[seen_numpy], self.scene.log_scales[seen_numpy]
         )
-        settings = config.optimizer_settings(self.extent)
-        if config.optimize_geometry:
+        settings = config.adam.optimizer(self.extent)
+        if config.fit.optimize_geometry:
             say(
                 f"scene extent {self.extent:.6g}: mean offsets lr {settings.mean_lr:.3g}, "
                 f"bound +-{settings.scene_bounds.means:.3g}"
@@ -393,8 +399,8 @@ class Stylization:
         optimizer = make_fit_optimizer([state.colors], geometry_params, settings, mean_params)
         base_renders = [r.clone() for r in self.renderer.all(state)]
         self.solver = (
-            BoundedColorFit(self.renderer, state, config.solve_settings(), config.log_optimum)
-            if config.solves_colors()
+            BoundedColorFit(self.renderer, state, config.solve.settings(), self.log_optimum)
+            if config.fit.solves_colors()
             else None
         )
         self.fitter = MultiViewFit(
@@ -402,11 +408,11 @@ class Stylization:
             state,
             optimizer,
             settings.scene_bounds,
-            config.loss_weights(),
+            config.adam.loss_weights(),
             features,
             base_renders,
-            config.pcgrad,
-            config.pcgrad_eps,
+            config.ablation.pcgrad,
+            config.adam.pcgrad_eps,
         )
         return base_renders
 
@@ -415,7 +421,7 @@ class Stylization:
         wider than the strokes. The strokes' scale is in proposal pixels, the footprint in fit pixels: a proposal
         pixel is sqrt(fit pixels / proposal pixels) fit pixels, averaged over the views."""
         self.footprint = splat_footprint(self.renderer)
-        proposal_pixels = self.config.proposal_width * self.config.proposal_height
+        proposal_pixels = self.config.proposal.width * self.config.proposal.height
         fit_scale = float(np.mean([math.sqrt(c.width * c.height / proposal_pixels) for c in self.cameras]))
         note = stroke_size_note(self.footprint, self.config, fit_scale)
         if note:
@@ -443,7 +449,7 @@ class Stylization:
         """Resume from a checkpoint of the same run, else encode the base renders; the style distances so far."""
         resumable = self.record.checkpoint is not None
         key = (
-            run_id(self.config.to_dict(), self.scene, self.cameras, self.style, self.contents, self.mask)
+            run_id(self.config.run_values(), self.scene, self.cameras, self.style, self.contents, self.mask)
             if resumable
             else ""
         )
@@ -476,7 +482,7 @@ class Stylization:
         """Sec. 4.1: attention-guided proposals, one fresh-Adam step per timestep, per view."""
         self.work = work = _StageWork(time.perf_counter())
         self.backend.prepare_stage(self.states, self.style, self.contents, self.coverages)
-        guided = self.backend.takes_guides and self.config.guide_weight > 0 and len(self.cameras) > 1
+        guided = self.backend.takes_guides and self.config.proposal.guide_weight > 0 and len(self.cameras) > 1
         if guided:  # views in order, each guided by the earlier ones' proposals seen from it (guides.py)
             depths = [self.renderer.depth(v, self.state) for v in range(len(self.cameras))]
             done: list[torch.Tensor | None] = [None] * len(self.cameras)
@@ -487,7 +493,9 @@ class Stylization:
             self.hooks.report(stage.index, i, views, "proposal", float("nan"), message)
             guide = None
             if guided:
-                guide = view_guide(i, list(range(i)), done, depths, self.alphas, self.cameras, self.config.guide_weight)
+                guide = view_guide(
+                    i, list(range(i)), done, depths, self.alphas, self.cameras, self.config.proposal.guide_weight
+                )
             kwargs = {"guide": guide} if guide is not None else {}
             self.states[i], energies = self.backend.propose(
                 self.states[i], stage.timesteps, self.style, self.contents[i], self.coverages[i], **kwargs
@@ -500,7 +508,7 @@ class Stylization:
     def residual_targets(self, stage: Stage) -> list[torch.Tensor]:
         """Sec. 4.2, Eqs. 10-12: each view's render moved by gamma_n x the proposal's residual."""
         targets, gamma = [], self.gammas[stage.index - 1]
-        space = "logit" if self.config.logit_space else "image"
+        space = "logit" if self.config.ablation.logit_space else "image"
         self.work.renders = self.renderer.all(self.state)
         for i, image in enumerate(self.work.renders):
             decoded = self.backend.decode(self.states[i]).detach().float().cpu()
@@ -521,7 +529,7 @@ class Stylization:
         n = stage.index
         self.work.closure = self._fit(targets, n, "fit", f"stage {n}, fit step")
         self.work.fitted_seconds = time.perf_counter() - self.work.started
-        feedback = "style distance, re-encoding the fitted views" if self.config.feedback else "style distance"
+        feedback = "style distance, re-encoding the fitted views" if self.config.ablation.feedback else "style distance"
         self.hooks.report(n, 0, 1, "feedback", float("nan"), feedback)
 
     def _fit(self, targets, stage: int, phase: str, where: str, start: torch.Tensor | None = None) -> dict:
@@ -534,7 +542,7 @@ class Stylization:
         before = self.work.renders or self.renderer.all(self.state)
         optimum, optimum_seconds, disagreement = None, 0.0, {}
         if self.solver is not None:
-            rounds = self.config.solve_rounds
+            rounds = self.config.solve.rounds
 
             def counter(index: int) -> str:
                 return f"colour solve round {index} (at most {rounds})"
@@ -570,7 +578,7 @@ class Stylization:
             done, total, counted = len(result.objectives) - 1, rounds, counter(len(result.objectives) - 1)
             iterations = result.iterations
         else:
-            steps = self.config.fit_steps if phase == "fit" else self.config.post_steps
+            steps = self.config.fit.fit_steps if phase == "fit" else self.config.fit.post_steps
             self.work.losses = self._fit_steps(targets, steps, stage, phase, where)
             done, total, counted = steps, steps, f"fit step {steps}/{steps}"
             iterations = steps
@@ -598,7 +606,7 @@ class Stylization:
         self.work.distance = self.style_distance(renders)
         self.distances.append(self.work.distance)
         improvement = stage_improvement(self.distances)
-        early_stop, moved = self.config.early_stop, self.work.closure.get("fit_moved")
+        early_stop, moved = self.config.schedule.early_stop, self.work.closure.get("fit_moved")
         if early_stop > 0 and stage.index < len(self.stages):
             if improvement is not None and improvement < early_stop:
                 self.work.stop_reason = (
@@ -610,7 +618,7 @@ class Stylization:
                     f"the stage's fit moved the views by {moved:.4f} RMSE (< {STILL_SCENE}); the remaining stages "
                     "are left out"
                 )
-        if self.config.feedback:
+        if self.config.ablation.feedback:
             self.states = [self.backend.encode(_resize(r, *self.size)) for r in renders]
 
     def finish_stage(self, stage: Stage) -> bool:
@@ -650,7 +658,7 @@ class Stylization:
 
     def post_stage(self) -> None:
         """Covariance colour transfer of the renders toward the style, then fitting to it."""
-        steps = self.config.post_steps
+        steps = self.config.fit.post_steps
         if steps <= 0:
             return
         self.hooks.report(len(self.stages) + 1, 0, 1, "post", float("nan"), "colour transfer")
@@ -687,7 +695,7 @@ class Stylization:
         self.hooks.stage_done(lambda: self._stage_update(len(self.stages) + 1, {}))
 
     def result(self) -> StylizeResult:
-        scene = result_scene(self.scene, self.state, self.config.sh_rest == "zero", self.mask is not None)
+        scene = result_scene(self.scene, self.state, self.config.scene.sh_rest == "zero", self.mask is not None)
         seconds = self.hooks.elapsed()
         log = self.record.entries
         last_loss = log[-1].get("fit_residual", float("nan")) if log else float("nan")  # the fit RMSE, as reported
@@ -716,8 +724,8 @@ class Stylization:
         return float(sliced_wasserstein_patches(small, self.style, masks=self.coverages, seed=self.config.seed).mean())
 
     def _stage_update(self, stage: int, images) -> StageUpdate:
-        geometry = self.config.optimize_geometry
-        scene = result_scene(self.scene, self.state, self.config.sh_rest == "zero", self.mask is not None)
+        geometry = self.config.fit.optimize_geometry
+        scene = result_scene(self.scene, self.state, self.config.scene.sh_rest == "zero", self.mask is not None)
         return StageUpdate(
             stage,
             scene.sh_dc,

@@ -312,8 +312,8 @@ def select_active_views(
         raise CameraError("no cameras: add cameras to the scene, give a cameras file, or use orbit cameras")
     w = visibility_matrix(
         scene,
-        scaled_cameras(cameras, config.render_scale),
-        config.raster_settings(),
+        scaled_cameras(cameras, config.scene.render_scale),
+        config.scene.raster(),
         progress=progress,
         cancel=cancel,
         device=device,
@@ -323,7 +323,7 @@ def select_active_views(
         w = torch.sparse_coo_tensor(  # a coalesced tensor's entries, some left out: still coalesced
             w.indices()[:, keep], w.values()[keep], w.shape, check_invariants=False, is_coalesced=True
         )
-    settings = config.view_selection()
+    settings = config.views.selection()
     chosen = select_views(w, settings)
     dense_max = w.to_dense().amax(0).numpy().astype(np.float64) if len(scene) * len(cameras) <= 5e7 else None
     if dense_max is None:
