@@ -136,17 +136,13 @@ def test_matches_reference_offcentre_nonsquare_and_near_plane():
     assert_matches_reference(scene, cam, RasterSettings(near=0.5))
 
 
-def test_bands_tiles_and_float32_agree():
+def test_bands_and_float32_agree():
     scene = random_scene(150, 3)
     cam = camera()
     exact = render(*tensors(scene), cam)
     banded = render(*tensors(scene), cam, RasterSettings(band_pairs=300))
-    tiled = render(*tensors(scene), cam, RasterSettings(tile_size=8))
-    single = render(*tensors(scene), cam, RasterSettings(dtype=torch.float32, accumulate=torch.float32))
     mixed = render(*tensors(scene), cam, RasterSettings(dtype=torch.float32))
     assert torch.allclose(banded.rgb, exact.rgb, atol=1e-12)
-    assert torch.allclose(tiled.rgb, exact.rgb, atol=1e-12)
-    assert (single.rgb - exact.rgb).abs().max() < 1e-4
     assert (mixed.rgb - exact.rgb).abs().max() < 1e-5  # float32 samples, float64 scans
 
 
@@ -154,9 +150,7 @@ def test_speed_knobs_change_what_they_say():
     scene = random_scene(150, 4)
     cam = camera()
     exact = render(*tensors(scene), cam)
-    capped = render(*tensors(scene), cam, RasterSettings(max_per_pixel=2))
     truncated = render(*tensors(scene), cam, RasterSettings(truncation_sigma=1.0))
-    assert capped.n_pairs <= 2 * cam.width * cam.height < exact.n_pairs
     assert truncated.n_pairs < exact.n_pairs
     assert (truncated.rgb - exact.rgb).abs().max() > 1e-3
 

@@ -43,16 +43,13 @@ from ..util.machine import cpu_model, load_average, usable_cores
 DEMO = "demo"
 
 # The rasterizer's speed knobs are raster/knobs.py's (the benchmark measures the same ones); --quick takes
-# the default and six of them.
+# the default and three of them.
 QUICK_RASTER_KNOBS = tuple(
     (knob, value)
     for knob, value in SPEED_KNOBS
     if value is None
     or (knob, value)
     in {
-        ("tile_size", 16),
-        ("max_per_pixel", 32),
-        ("max_per_pixel", 8),
         ("truncation_sigma", 3.0),
         ("truncation_sigma", 2.0),
         ("dtype", "float32"),

@@ -9,7 +9,7 @@ Semantics (the definition, which :mod:`.reference` implements slowly in float64)
 - EWA projection: the Jacobian's x/z and y/z are clamped to 1.3 tan(fov/2); the 2D covariance gets
   +0.3 on its diagonal; Gaussians with det <= 0, or with z <= ``near``, are skipped.
 - A Gaussian contributes at every pixel centre where alpha = min(0.99, o exp(-d^T S^-1 d / 2)) >= 1/255,
-  with no tile or radius truncation (those are speed knobs, off by default).
+  with no radius truncation (a speed knob, off by default).
 - Front-to-back by depth; a sample with T (1 - alpha) < 1e-4 ends the pixel and is not added.
 """
 

@@ -16,8 +16,8 @@ Pipeline for one view (one small function per stage):
    the sample's offset, so the per-sample backward never recomputes pixel offsets.
 
 Per-sample arithmetic runs in the dtype of the colours (float32 renders, float64 for gradcheck); the
-scans that accumulate along a pixel stay in float64 (``accumulate``), which keeps float32 renders
-within ~1e-6 of the float64 reference. Per-Gaussian data are kept as 1D columns: on CPU a gather of
+scans that accumulate along a pixel stay in float64 (float32 scans cost 5e-4 for no time), which keeps
+float32 renders within ~1e-6 of the float64 reference. Per-Gaussian data are kept as 1D columns: on CPU a gather of
 a 1D tensor is several times faster than one of rows of a [N, 3] tensor.
 """
 
@@ -51,9 +51,6 @@ class RasterSettings:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # Speed knobs; the defaults are the exact definition.
     dtype: torch.dtype | None = None  # per-sample arithmetic; None: the dtype of the colours
-    accumulate: torch.dtype = torch.float64  # the per-pixel scans (float32 scans cancel over long lists)
-    tile_size: int = 0  # 0: exact per-row spans; > 0: every pixel of every tile the bounding box touches
-    max_per_pixel: int = 0  # 0: no cap; > 0: at most this many samples per pixel (front-most)
     truncation_sigma: float = 0.0  # 0: none; > 0: also cut at this many standard deviations
     band_pairs: int = 400_000  # candidate samples per row band: bounds memory, keeps tensors in cache
     depth_tolerance: float = 0.1  # relative depth difference that counts as inconsistent (visibility)
@@ -174,18 +171,11 @@ def _row_entries(fixed: _Fixed, in_band, r0, r1, width, dtype, settings) -> _Ent
     row_min = dy * dy / cyy  # the smallest power on this row
     centre = mx + shift  # where it is reached, in pixel coordinates
     r2 = _take(fixed.r2, gauss)
-    if settings.tile_size > 0:
-        # Tile candidates: the bounding box widened to tile boundaries (graphdeco style), then filtered.
-        tile = settings.tile_size
-        x0, x1 = _col_extents(mx, _take(fixed.cxx, gauss), r2, width)
-        xl = x0 // tile * tile
-        xr = torch.clamp((x1 // tile + 1) * tile - 1, max=width - 1)
-    else:
-        rest = r2 - row_min
-        half = torch.sqrt(torch.clamp_min(rest, 0.0) / a)
-        xl = torch.clamp(torch.ceil(centre - half - 0.5), min=0).long()
-        xr = torch.clamp(torch.floor(centre + half - 0.5), max=width - 1).long()
-        xr = torch.where(rest >= 0, xr, xl - 1)
+    rest = r2 - row_min
+    half = torch.sqrt(torch.clamp_min(rest, 0.0) / a)
+    xl = torch.clamp(torch.ceil(centre - half - 0.5), min=0).long()
+    xr = torch.clamp(torch.floor(centre + half - 0.5), max=width - 1).long()
+    xr = torch.where(rest >= 0, xr, xl - 1)
     return _Entries(
         gauss=gauss,
         dy=dy,
@@ -235,11 +225,9 @@ def _band_samples(entries: _Entries, n_pix: int, dtype, settings) -> _Samples:
     u = (pixel - _take(entries.pixel0, owner)).to(dtype).add_(_take(entries.u0, owner))
     power_half = _take(entries.half_a, owner).mul_(u).mul_(u)  # (power - row minimum) / 2
     raw = torch.exp_(_take(entries.log_peak, owner).sub_(power_half))  # o G before the 0.99 clamp
-    if settings.tile_size > 0 or settings.truncation_sigma > 0 or settings.max_per_pixel > 0:
-        # Many candidates fail here (tiles, truncation), or the cap counts only real samples.
+    if settings.truncation_sigma > 0:  # many candidates fail here
         keep = raw >= ALPHA_MIN
-        if settings.truncation_sigma > 0:
-            keep &= 2.0 * power_half + _take(entries.row_min, owner) <= settings.truncation_sigma**2
+        keep &= 2.0 * power_half + _take(entries.row_min, owner) <= settings.truncation_sigma**2
         survivors = torch.nonzero(keep).squeeze(-1)
         pixel, owner, u, raw = (_take(t, survivors) for t in (pixel, owner, u, raw))
     else:
@@ -248,12 +236,10 @@ def _band_samples(entries: _Entries, n_pix: int, dtype, settings) -> _Samples:
     log1m = torch.neg(alpha).log1p_()
     counts = torch.bincount(pixel, minlength=n_pix)
     first = torch.cumsum(counts, 0) - counts
-    after = torch.cumsum(log1m.to(settings.accumulate), 0)  # inclusive scan over the whole band
+    after = torch.cumsum(log1m.to(torch.float64), 0)  # inclusive scan over the whole band
     before_pixel = _take(torch.cat([after.new_zeros(1), after]), first)  # scan value in front of each pixel
     log_after = after.sub_(_take(before_pixel, pixel))  # log T behind each sample, within its pixel
     include = log_after >= LOG_T_MIN  # a prefix of each pixel's samples
-    if settings.max_per_pixel > 0:
-        include &= torch.arange(pixel.numel(), device=pixel.device) - _take(first, pixel) < settings.max_per_pixel
     n_kept = torch.zeros(n_pix, dtype=torch.int64, device=pixel.device).index_add_(0, pixel, include.long())
     kept_pixel, kept_first, n_total = _groups(n_kept)
     kept = _take(first - kept_first, kept_pixel) + torch.arange(n_total, device=pixel.device)
@@ -358,7 +344,7 @@ class _Rasterize(torch.autograd.Function):
     def backward(ctx, grad_rgb, grad_t, _grad_depth):
         ca, cb, cc, opac, t_final = ctx.saved_tensors
         plan, cols = ctx.plan, ctx.cols
-        dtype, accumulate, width = plan.dtype, plan.settings.accumulate, plan.width
+        dtype, width = plan.dtype, plan.width
         device = grad_rgb.device
         f64 = torch.float64
         gr = grad_rgb.to(dtype).t().contiguous()  # [3, n_img]
@@ -382,7 +368,7 @@ class _Rasterize(torch.autograd.Function):
                 grad_colors[ch].index_add_(0, s.gauss, weight * g_ch)
                 term = g_ch * _take(cols[ch], s.gauss)
                 dot = term if dot is None else dot.add_(term)
-            scan = torch.cumsum((weight * dot).to(accumulate), 0)
+            scan = torch.cumsum((weight * dot).to(f64), 0)
             behind = (_take(_at_last(scan, s.last), s.pixel) - scan).to(dtype)  # sum_{j>k} T_j a_j (G . c_j)
             tail_s = _take(tail.narrow(0, r0 * width, n_pix), s.pixel)
             d_alpha = torch.exp(s.log_t) * dot - (behind + tail_s) / (1.0 - s.alpha)
