@@ -412,6 +412,31 @@ def test_layer_and_device_settings_are_checked(tiny):
             SD15Backend(folder, device="cuda")
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_a_proposal_on_cuda_starts_where_the_cpu_s_does_and_lowers_the_energy_in_half_precision_too(tiny, backend):
+    # Compared before any Adam step: Adam's first steps are about lr x sign(g), so GPU rounding flips the small
+    # gradients' steps and the two runs part ways by design; what must agree is the features and the decode.
+    style_image, content_image, render = _image(seed=5), _image(seed=6), _image(seed=7)
+    terms = EnergyTerms(content_weight=0.15)
+    timesteps = list(range(951, 921, -5))
+    gpu = SD15Backend(tiny[1], device="cuda", dtype=torch.float32)
+    for chosen in (backend, gpu):
+        chosen.clear_cache()
+    starts = [chosen.encode(render) for chosen in (backend, gpu)]
+    torch.testing.assert_close(starts[1].cpu(), starts[0].cpu(), atol=1e-3, rtol=1e-3)
+    torch.testing.assert_close(gpu.decode(starts[1]).cpu(), backend.decode(starts[0]).cpu(), atol=1e-3, rtol=1e-3)
+    energies = [
+        optimize_proposal(c, s, timesteps, style_image, content_image, terms)[1] for c, s in zip((backend, gpu), starts)
+    ]
+    assert energies[1][0] == pytest.approx(energies[0][0], rel=1e-3)
+    assert energies[1][-1] < energies[1][0]
+    half = SD15Backend(tiny[1], device="cuda", dtype=torch.float16)
+    latent, steps = optimize_proposal(half, half.encode(render), timesteps, style_image, content_image, terms)
+    image = half.decode(latent)
+    assert all(torch.isfinite(torch.tensor(steps))) and steps[-1] < steps[0] and torch.isfinite(image).all()
+    assert image.shape == (3, 64, 128) and float(image.min()) >= 0 and float(image.max()) <= 1
+
+
 def test_importing_the_proposal_package_does_not_import_diffusers():
     code = (
         "import sys, dresg_addon.method.proposal, dresg_addon.method.proposal.sd15; "
