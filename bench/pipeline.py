@@ -18,7 +18,7 @@ targets and feedback encodes between them) and the post stage.
   at the measured fit-step cost. Its peak memory is the one stage's (memory does not grow with stages).
 - ``sd15``: seconds per latent update measured on a tiny random model of SD1.5's block layout at
   448x320, and the estimate for the real model from its measured pass costs on this CPU
-  (``proposal.sd15.SD15Costs``, ``estimate_cpu_seconds``).
+  (``backends.SD15Costs``, ``estimate_cpu_seconds``).
 
 Targets on a 2-core CPU: paper <= 10 min and <= 8 GB; preview <= 60 s; standard <= 5 min and <= 8 GB. ``--quick`` is a smoke run (a
 twentieth of the bonsai, or the demo scene without shared data; 4 cameras at 112x80; tiny schedules):
@@ -390,8 +390,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def sd15_lines(args, common: dict, cpu_run: dict) -> list[str]:
+    from dresg_addon.method.backends import SD15Costs, estimate_cpu_seconds
     from dresg_addon.method.config import PRESETS
-    from dresg_addon.method.proposal.sd15 import SD15Costs, estimate_cpu_seconds
 
     if importlib.util.find_spec("diffusers") is None:
         return ["sd15: skipped (diffusers is not installed)"]

@@ -20,13 +20,13 @@ from diffusers import AutoencoderKL, UNet2DConditionModel  # noqa: E402
 from safetensors.torch import load_file, save_file  # noqa: E402
 from transformers import CLIPTextConfig, CLIPTextModel  # noqa: E402
 
-from dresg_addon.method.proposal import EnergyTerms, attention_energy, make_backend, optimize_proposal  # noqa: E402
+from dresg_addon.method.config import StylizeConfig  # noqa: E402
+from dresg_addon.method.loop import _proposal_backend  # noqa: E402
+from dresg_addon.method.proposal import EnergyTerms, attention_energy, optimize_proposal  # noqa: E402
 from dresg_addon.method.proposal.sd15 import (  # noqa: E402
     DEFAULT_LAYERS,
     SD15Backend,
-    SD15Costs,
     _Capture,
-    estimate_cpu_seconds,
     self_attention_names,
 )
 from dresg_addon.method.proposal.sd15_configs import (  # noqa: E402
@@ -252,10 +252,15 @@ def test_bad_shapes_and_timesteps_are_refused(backend):
 # --- loading ---------------------------------------------------------------------------------------
 
 
-def test_make_backend_builds_sd15_from_a_folder(tiny):
+def test_a_run_builds_sd15_from_a_folder_with_its_settings_in_the_constructor(tiny):
     models, folder = tiny
-    built = make_backend("sd15", model_path=str(folder), device="cpu")
-    assert built.name == "sd15" and built.dtype == torch.float32
+    config = StylizeConfig(
+        proposal="sd15", model_path=str(folder), scene_weight=0.8, latent_lr=0.02, use_style_values=False
+    )
+    built = _proposal_backend(config, "cpu")
+    assert built.name == "sd15" and built.dtype == torch.float32 and built.device == torch.device("cpu")
+    assert built.learning_rate == 0.02
+    assert built.terms == EnergyTerms(0.3 * 0.8, use_content_query=True, use_style_keys=True, use_style_values=False)
     ids = torch.tensor([[49406] + [49407] * 76])
     with torch.no_grad():
         expected = models["text_encoder"](input_ids=ids).last_hidden_state
@@ -445,19 +450,3 @@ def test_importing_the_proposal_package_does_not_import_diffusers():
     )
     result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
-
-
-# --- cost estimate ---------------------------------------------------------------------------------
-
-
-def test_cpu_estimate_scales_with_work_and_warns_of_hours():
-    paper = estimate_cpu_seconds(views=16)
-    assert paper > 3 * 3600  # the paper's schedule is hours on a 2-core CPU
-    assert estimate_cpu_seconds(views=17) > paper
-    half = estimate_cpu_seconds(views=16, width=224, height=160)
-    assert half == pytest.approx(paper / 4)
-    costs = SD15Costs(unet_forward=1.0, unet_backward=1.0, vae_encode=0.0, vae_decode=0.0)
-    assert costs.seconds_per_update == 3.0
-    assert estimate_cpu_seconds(1, stages=1, updates_per_stage=1, costs=costs) == pytest.approx(3.0 + 1.0)
-    with pytest.raises(ConfigError):
-        estimate_cpu_seconds(views=-1)

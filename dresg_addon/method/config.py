@@ -22,9 +22,10 @@ import math
 from dataclasses import asdict, dataclass, replace
 
 from ..util.errors import ConfigError
+from .backends import BACKENDS
 
 SCHEDULES = ("snr-balanced", "fixed-1", "fixed-2", "triangle", "timestep-cosine")
-PROPOSALS = ("synth", "sd15")
+PROPOSALS = tuple(BACKENDS)  # the registered proposal backends (backends.py)
 SH_REST_MODES = ("keep", "zero")
 COLOR_FITS = ("solve", "adam")
 
@@ -48,8 +49,8 @@ class StylizeConfig:
     stroke_size: float = 1.0
     # Paint <-> Scene in [0, 1]: how much of the scene's structure the painting may override. 0: the painting
     # overrides the scene's forms; 1: the scene's forms and light are kept. Texture finer than the strokes always
-    # comes from the painting. Each backend maps it to its own content weight w_c (loop.synth_content_weight,
-    # loop.sd15_content_weight): 0.5 is sd15's paper w_c 0.15 and the synth backend's w_c 1.
+    # comes from the painting. Each backend maps it to its own content weight w_c (backends.synth_content_weight,
+    # backends.sd15_content_weight): 0.5 is sd15's paper w_c 0.15 and the synth backend's w_c 1.
     scene_weight: float = 0.5
     latent_lr: float = 0.05
     use_content_query: bool = True  # ablation "w/o Q_c" when False
@@ -209,14 +210,14 @@ def check_run_settings(config: StylizeConfig) -> None:
             "the w/o K_s and w/o V_s ablations change the attention energy; the synth backend has none "
             "(use --proposal sd15 for them)"
         )
-    if config.proposal == "sd15":
-        if not config.model_path:
-            raise ConfigError("the sd15 proposal backend needs a local model path (--model PATH)")
-        if config.proposal_width % 8 or config.proposal_height % 8:
-            raise ConfigError(
-                f"the sd15 proposal size must be a multiple of 8 (got {config.proposal_width}x"
-                f"{config.proposal_height}), e.g. 448x320"
-            )
+    backend = BACKENDS[config.proposal]
+    if config.proposal_width % backend.size_multiple or config.proposal_height % backend.size_multiple:
+        raise ConfigError(
+            f"the {backend.name} proposal size must be a multiple of {backend.size_multiple} (got "
+            f"{config.proposal_width}x{config.proposal_height}), e.g. 448x320"
+        )
+    if reason := backend.unavailable(config.model_path):
+        raise ConfigError(reason)
 
 
 PRESETS: dict[str, StylizeConfig] = {
