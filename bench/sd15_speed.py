@@ -130,7 +130,8 @@ def main() -> int:
 
     import torch
 
-    from dresg_addon.method.proposal.sd15 import SD15Backend, estimate_cpu_seconds
+    from dresg_addon.method.backends import estimate_cpu_seconds
+    from dresg_addon.method.proposal.sd15 import SD15Backend
 
     harness.apply_thread_policy()
     dtype = getattr(torch, args.dtype)
