@@ -18,7 +18,7 @@ targets and feedback encodes between them) and the post stage.
   at the measured fit-step cost. Its peak memory is the one stage's (memory does not grow with stages).
 - ``sd15``: seconds per latent update measured on a tiny random model of SD1.5's block layout at
   448x320, and the estimate for the real model from its measured pass costs on this CPU
-  (``proposal.sd15.SD15Costs``, ``estimate_cpu_seconds``).
+  (``backends.SD15Costs``, ``estimate_cpu_seconds``).
 
 Targets on a 2-core CPU: paper <= 10 min and <= 8 GB; preview <= 60 s; standard <= 5 min and <= 8 GB. ``--quick`` is a smoke run (a
 twentieth of the bonsai, or the demo scene without shared data; 4 cameras at 112x80; tiny schedules):
@@ -352,11 +352,11 @@ def main(argv: list[str] | None = None) -> int:
         "",
     ]
     if "error" not in paper_one:
-        estimate = paper_extrapolation(paper_one, paper.stages, paper.post_steps)
+        estimate = paper_extrapolation(paper_one, paper.schedule.stages, paper.fit.post_steps)
         lines.append(
-            f"- paper, extrapolated from its one measured stage to {paper.stages} stages + {paper.post_steps} post "
-            f"steps: about {secs(estimate)} (selection + setup + {paper.stages} x "
-            f"{secs(paper_one['proposals_s'] + paper_one['fitting_s'])} per stage + {paper.post_steps} x "
+            f"- paper, extrapolated from its one measured stage to {paper.schedule.stages} stages + {paper.fit.post_steps} post "
+            f"steps: about {secs(estimate)} (selection + setup + {paper.schedule.stages} x "
+            f"{secs(paper_one['proposals_s'] + paper_one['fitting_s'])} per stage + {paper.fit.post_steps} x "
             f"{paper_one['fit_step_s']:.2f} s per fit step); peak memory {gb(paper_one['peak_rss'])}"
         )
         if not args.quick:
@@ -390,8 +390,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def sd15_lines(args, common: dict, cpu_run: dict) -> list[str]:
+    from dresg_addon.method.backends import SD15Costs, estimate_cpu_seconds
     from dresg_addon.method.config import PRESETS
-    from dresg_addon.method.proposal.sd15 import SD15Costs, estimate_cpu_seconds
 
     if importlib.util.find_spec("diffusers") is None:
         return ["sd15: skipped (diffusers is not installed)"]
@@ -400,7 +400,7 @@ def sd15_lines(args, common: dict, cpu_run: dict) -> list[str]:
     tiny = call_worker({"kind": "sd15", **common, "width": width, "height": height, "updates": 2 if args.quick else 10})
     paper = PRESETS["paper"]
     views = cpu_run.get("views", 16) if "error" not in cpu_run else 16
-    estimate = estimate_cpu_seconds(views, paper.stages, paper.updates_per_stage, *SD15_SIZE)
+    estimate = estimate_cpu_seconds(views, paper.schedule.stages, paper.schedule.updates_per_stage, *SD15_SIZE)
     measured = "failed: " + tiny["error"] if "error" in tiny else f"{tiny['seconds_per_update']:.2f} s"
     return [
         f"sd15 (paper schedule, {SD15_SIZE[0]}x{SD15_SIZE[1]}, fp32 on this CPU):",

@@ -7,6 +7,7 @@ into the fields, and :meth:`DRESG_PG_settings.config` turns the fields back into
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+from ..dresg_addon.method.backends import BACKENDS
 from ..dresg_addon.method.config import (
     DEFAULT_PRESET,
     PRESETS,
@@ -91,11 +92,8 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
     proposal: EnumProperty(
         name="Proposal",
         description="What paints each view before the splats take on its colours",
-        items=(
-            ("synth", "Painting Synthesis (no download)", "Pastes the painting's own strokes; runs on the CPU"),
-            ("sd15", "Stable Diffusion 1.5", "The paper's diffusion proposal (model path in the add-on preferences)"),
-        ),
-        default="synth",
+        items=[(entry.name, entry.label, entry.description) for entry in BACKENDS.values()],
+        default=_default("proposal"),
     )
     stages: IntProperty(
         name="Stages",

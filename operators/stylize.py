@@ -103,12 +103,6 @@ def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[
     return run, note
 
 
-def _cuda_available() -> bool:
-    import torch
-
-    return torch.cuda.is_available()
-
-
 class DRESG_OT_stylize(JobOperator, bpy.types.Operator):
     """Give the selected splats the look of the style image, from the ticked cameras; runs in the background, Esc cancels"""
 
@@ -143,9 +137,14 @@ class DRESG_OT_stylize(JobOperator, bpy.types.Operator):
         return True
 
     def _prepare(self, context) -> job.StylizeJob:
+        from ..dresg_addon.method.backends import slow_note
+
         run, note = prepare_job(context, model_path=self.model_path, dino_path=self.dino_path)
         if note:
             self.report({"INFO"}, note)
+        slow = slow_note(run.config)
+        if slow:
+            self.report({"WARNING"}, slow)
         return run
 
     def execute(self, context):
@@ -164,8 +163,6 @@ class DRESG_OT_stylize(JobOperator, bpy.types.Operator):
         except DresgError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        if run.config.proposal.backend == "sd15" and not _cuda_available():
-            self.report({"WARNING"}, "SD1.5 without a GPU: each latent update takes seconds per view, expect hours")
         return self.run_modal(context, run)
 
     def _finish(self, context, run: job.StylizeJob):

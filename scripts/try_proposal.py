@@ -15,7 +15,7 @@ import argparse
 import ast
 import time
 
-from dresg_addon.method.proposal import make_backend  # noqa: E402
+from dresg_addon.method.proposal.synth import SynthBackend  # noqa: E402
 from dresg_addon.method.schedule import stage_timesteps  # noqa: E402
 from dresg_addon.util.imageio import read_rgb, resize_image, to_array, to_tensor, write_image  # noqa: E402
 
@@ -35,7 +35,7 @@ def main() -> int:
     args = parser.parse_args()
 
     overrides = {name: ast.literal_eval(value) for name, value in (item.split("=", 1) for item in args.set)}
-    backend = make_backend("synth", **overrides)
+    backend = SynthBackend(**overrides)
     content = to_tensor(resize_image(read_rgb(args.content), args.width, args.height)).clamp(0, 1)
     style = to_tensor(resize_image(read_rgb(args.style), args.width, args.height)).clamp(0, 1)
     write_image(args.out_before, to_array(content))

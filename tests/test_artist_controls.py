@@ -15,18 +15,11 @@ from test_pipeline import TINY, ring_cameras, sphere_scene, textured_style
 from dresg_addon import cli
 from dresg_addon.commands.stylize import config_from_args
 from dresg_addon.method import loop
+from dresg_addon.method.backends import CONTENT_WEIGHT_CAP, sd15_content_weight, synth_content_weight
 from dresg_addon.method.bookkeeping import RunHooks, RunRecord
 from dresg_addon.method.config import PRESETS, StylizeConfig, preset
 from dresg_addon.method.fitting import ViewRenderer, seen_gaussians, splat_footprint
-from dresg_addon.method.loop import (
-    CONTENT_WEIGHT_CAP,
-    Stylization,
-    _proposal_backend,
-    sd15_content_weight,
-    stroke_size_note,
-    stylize,
-    synth_content_weight,
-)
+from dresg_addon.method.loop import Stylization, _proposal_backend, stroke_size_note, stylize
 from dresg_addon.method.proposal.synth import SynthBackend, SynthSettings
 from dresg_addon.raster import RasterSettings
 from dresg_addon.raster.projection import project_gaussians, projected_mean_variance, splat_covariances

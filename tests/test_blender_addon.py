@@ -326,6 +326,41 @@ def test_stylize_reports_input_errors_before_running(addon, tmp_path, monkeypatc
     assert addon.operators.job.StylizeJob.current() is None
 
 
+def test_the_proposal_menu_its_notes_and_the_operators_warning_come_from_the_registry(addon, tmp_path, capfd, monkeypatch):
+    """Issue 29: the panel's Proposal items are the registry's; the panel shows the backend's availability reason and
+    CPU estimate, and Stylize reports the same slow_note the CLI prints."""
+    backends = addon.dresg_addon.method.backends
+    prop = bpy.context.scene.dresg.bl_rna.properties["proposal"]
+    entries = backends.BACKENDS.values()
+    assert [(i.identifier, i.name, i.description) for i in prop.enum_items] == [
+        (e.name, e.label, e.description) for e in entries
+    ]
+    assert prop.default == addon.dresg_addon.method.config.PRESETS["standard"].proposal.backend == "synth"
+
+    monkeypatch.setattr(addon.operators.dependencies, "torch_available", lambda: True)
+    _splat_object(tmp_path)
+    settings = bpy.context.scene.dresg
+    settings.proposal = "sd15"
+    layout = draw(addon.ui.panels.DRESG_PT_style, bpy.context)
+    shown = " ".join(kw.get("text", "") for name, _, kw in layout._log if name == "label")
+    assert backends.BACKENDS["sd15"].unavailable("") in shown  # no model path in the preferences
+    estimate = backends.duration(backends.proposal_seconds(settings.config()))
+    assert f"Without a GPU: about {estimate} (estimate)" in shown
+    settings.proposal = "synth"
+    layout = draw(addon.ui.panels.DRESG_PT_style, bpy.context)
+    assert not [kw for name, _, kw in layout._log if name == "label" and kw.get("icon") in ("ERROR", "INFO")]
+
+    from dresg_addon.util.imageio import write_image
+
+    write_image(tmp_path / "style.png", np.zeros((4, 4, 3), np.float32))
+    settings.style_path, settings.proposal = str(tmp_path / "style.png"), "sd15"
+    capfd.readouterr()
+    with pytest.raises(RuntimeError, match="no-model: no such file or folder"):  # the registry's reason, from the run
+        bpy.ops.dresg.stylize(model_path=str(tmp_path / "no-model"))
+    note = backends.slow_note(addon.operators.job.StylizeJob.current().config)
+    assert note.startswith("sd15 on this CPU takes about ") and note in capfd.readouterr().out
+
+
 def test_installer_runs_commands_and_reports_failures(addon, tmp_path):
     dependencies = addon.operators.dependencies
     JobState = addon.operators.tasks.JobState

@@ -289,3 +289,16 @@ def test_stylize_a_selection_by_box_or_mask_file_keeps_every_other_splat(files, 
         assert cli.main([*_stylize_args(files, tmp_path / "never.ply"), *extra]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and message in err[0], err
+
+
+def test_the_cpu_note_of_a_gpu_backend_is_the_registrys_estimate(files, tmp_path, capsys):
+    """Issue 29: the CLI prints the registry's slow_note (the operator reports the same function's line)."""
+    from dresg_addon.commands.stylize import config_from_args
+    from dresg_addon.method.backends import slow_note
+
+    model = tmp_path / "not-a-model"
+    model.mkdir()
+    args = _stylize_args(files, tmp_path / "never.ply", "--proposal", "sd15", "--model", str(model), "--device", "cpu")
+    assert cli.main(args) != 0  # the folder holds no model: the loader says so after the note
+    note = slow_note(config_from_args(cli.build_parser().parse_args(args)), "cpu")
+    assert note.startswith("sd15 on this CPU takes about ") and f"note: {note}\n" in capsys.readouterr().err

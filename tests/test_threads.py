@@ -140,6 +140,8 @@ def test_threads_follow_the_cores_other_processes_leave():
 def test_core_monitor_sees_a_busy_neighbour():
     from dresg_addon.util.threads import CoreMonitor
 
+    if not os.path.exists("/proc/stat"):
+        pytest.skip("CoreMonitor reads Linux's /proc/stat")
     monitor = CoreMonitor()
     assert monitor.others_busy() is None  # too soon to say
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
@@ -149,8 +151,23 @@ def test_core_monitor_sees_a_busy_neighbour():
     finally:
         busy.kill()
         busy.wait()
-    if others is not None:  # None where /proc/stat is missing
-        assert others >= 0.75, others
+    assert others is not None and others >= 0.75, others
+
+
+def test_core_monitor_counts_other_processes_busy_time_and_not_its_own(monkeypatch):
+    from dresg_addon.util import threads
+
+    stats = iter(["cpu0 100 0 100 800 0\ncpu1 100 0 100 800 0\n", "cpu0 250 0 150 800 0\ncpu1 300 0 100 800 0\n"])
+    clock = iter([10.0, 12.0, 12.0])
+    own = iter([(1.0, 0.0), (1.5, 0.0)])
+    monkeypatch.setattr(threads.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    monkeypatch.setattr(threads.os, "sysconf", lambda name: 100)
+    monkeypatch.setattr(threads.time, "monotonic", lambda: next(clock))
+    monkeypatch.setattr(threads.os, "times", lambda: type("T", (), dict(zip(("user", "system"), next(own))))())
+    monkeypatch.setattr("builtins.open", lambda *a, **k: __import__("io").StringIO(next(stats)))
+    monitor = threads.CoreMonitor()
+    # 400 ticks = 4 core-s busy in 2 s, of which 0.5 s was this process: 1.75 other cores.
+    assert monitor.others_busy(min_interval_s=1.0) == pytest.approx(1.75)
 
 
 class _Busy:

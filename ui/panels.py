@@ -121,6 +121,25 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
         row.operator("dresg.export_splats", text="Export", icon="EXPORT")
 
 
+def _draw_backend_notes(layout, context, settings) -> None:
+    """Why the chosen proposal backend cannot run here, and what it costs without a GPU (the registry's words)."""
+    from ..dresg_addon.method.backends import BACKENDS, duration, proposal_seconds
+    from ..dresg_addon.util.errors import DresgError
+
+    entry = BACKENDS[settings.proposal]
+    prefs = addon_preferences(context)
+    model_path = prefs.sd15_path if prefs is not None else ""
+    reason = entry.unavailable(bpy.path.abspath(model_path) if model_path else "")  # as Stylize resolves it
+    if reason:
+        _wrapped(layout, reason, icon="ERROR")
+    if entry.uses_gpu:
+        try:
+            seconds = proposal_seconds(settings.config())
+        except DresgError:  # settings that cannot run say so when Stylize is pressed
+            return
+        layout.label(text=f"Without a GPU: about {duration(seconds)} (estimate)", icon="INFO")
+
+
 class DRESG_PT_style(ChildPanel, bpy.types.Panel):
     bl_label = "Style"
 
@@ -140,11 +159,7 @@ class DRESG_PT_style(ChildPanel, bpy.types.Panel):
             layout.prop_search(settings, "selection_group", context.active_object, "vertex_groups")
         layout.prop(settings, "preset")
         layout.prop(settings, "proposal")
-        if settings.proposal == "sd15":
-            prefs = addon_preferences(context)
-            if prefs is None or not prefs.sd15_path:
-                layout.label(text="Set the SD1.5 model path in the add-on preferences", icon="ERROR")
-            layout.label(text="Without a GPU a run takes hours", icon="INFO")
+        _draw_backend_notes(layout, context, settings)
         layout.prop(settings, "stages")
         steps = layout.row()
         steps.active = settings.optimize_geometry  # colour-only fits are solved, not stepped

@@ -7,12 +7,12 @@ import sys
 import time
 from pathlib import Path
 
+from ..method.backends import BACKENDS, slow_note
 from ..method.config import (
     COLOR_FITS,
     DEFAULT_PRESET,
     FLAT_NAMES,
     PRESETS,
-    PROPOSALS,
     SCHEDULES,
     SH_REST_MODES,
     preset,
@@ -99,8 +99,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--proposal",
-        choices=PROPOSALS,
-        help="proposal backend: synth (default, no weights) or sd15 (Stable Diffusion 1.5 on disk)",
+        choices=tuple(BACKENDS),
+        help=f"proposal backend (default {PRESETS[DEFAULT_PRESET].proposal.backend}); "
+        + "; ".join(f"{entry.name}: {entry.description}" for entry in BACKENDS.values()),
     )
     parser.add_argument("--model", metavar="PATH", help="local Stable Diffusion 1.5 folder or .safetensors (sd15)")
     parser.add_argument("--dino", metavar="PATH", help="local DINO weights for the fit loss's feature term")
@@ -237,6 +238,12 @@ def room_needed(scene, cameras, config, out: Path, log_path: Path, checkpoint_di
     return needs
 
 
+def _cuda_available() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
 def run(args) -> int:
     from ..method.bookkeeping import ProgressLines
     from ..method.config import check_run_settings
@@ -262,30 +269,10 @@ def run(args) -> int:
     checkpoint_dir = Path(args.checkpoint_dir) if args.checkpoint_dir else out.with_suffix(".checkpoint")
     # A long run must not lose its work to an output problem found at its end.
     check_room(room_needed(scene, cameras, config, out, log_path, checkpoint_dir, args.save_views))
-    if not args.quiet and (config.proposal.backend == "sd15" or config.fit.optimize_geometry):
-        import torch
-
-        on_cpu = not torch.cuda.is_available()
-    else:
-        on_cpu = False
-    # --device decides where sd15 runs; without it sd15 takes the GPU when there is one.
-    sd15_on_cpu = on_cpu if device is None else not args.quiet and device.type == "cpu"
-    if sd15_on_cpu and config.proposal.backend == "sd15":
-        from ..method.proposal.sd15 import estimate_cpu_seconds
-
-        estimate = estimate_cpu_seconds(
-            views=config.views.max_views or 16,
-            stages=config.schedule.stages,
-            updates_per_stage=config.schedule.updates_per_stage,
-            width=config.proposal.width,
-            height=config.proposal.height,
-        )
-        duration = f"{estimate / 3600:.1f} h" if estimate >= 3600 else f"{estimate / 60:.0f} min"
-        print(
-            f"note: sd15 on this CPU takes about {duration} for this schedule (estimate); the synth backend takes minutes",
-            file=sys.stderr,
-        )
-    if on_cpu and config.fit.optimize_geometry:
+    note = None if args.quiet else slow_note(config, device)
+    if note:
+        print(f"note: {note}", file=sys.stderr)
+    if not args.quiet and config.fit.optimize_geometry and not _cuda_available():
         steps = config.schedule.stages * config.fit.fit_steps + config.fit.post_steps
         print(
             f"note: geometry offsets are on: each of the {steps} fit steps renders every active view with "

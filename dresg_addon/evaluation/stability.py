@@ -427,7 +427,7 @@ def case_scene_scaled_down() -> CaseResult:
 def case_flat_style_image() -> CaseResult:
     """Flat style images (black, white, a mid colour) through the proposal, colour transfer and stylize."""
     from ..method.color_transfer import covariance_color_transform
-    from ..method.proposal import make_backend
+    from ..method.proposal.synth import SynthBackend
     from ..raster import RasterSettings, render_scene
 
     scene, cameras = tiny_scene(), tiny_cameras()
@@ -436,7 +436,7 @@ def case_flat_style_image() -> CaseResult:
     content = torch.nn.functional.interpolate(render[None], size=(16, 16), mode="area")[0]
     coverage = torch.nn.functional.interpolate(out.alpha[None, None], size=(16, 16), mode="area")[0, 0]
     observed, ok = {}, True
-    backend = make_backend("synth")
+    backend = SynthBackend()
     for label, color in (("black", 0.0), ("white", 1.0), ("mid", (0.2, 0.5, 0.8))):
         style = torch.from_numpy(_style(color)).permute(2, 0, 1).contiguous()
         backend.prepare_stage([content], style, [content], [coverage])

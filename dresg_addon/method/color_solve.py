@@ -4,9 +4,7 @@ With means, scales, rotations and opacities fixed, view v renders rgb_v = W_v c 
 each sample's T alpha (:class:`~dresg_addon.raster.ColorOnlyRenderer`), b_v what does not depend on the
 colours (background, kept SH bands). Fitting targets t_v over all active views at once is then
 
-    min_{c in [0, 1]}  f(c) = sum_v || w_v^(1/2) (W_v c + b_v - t_v) ||^2,
-
-with per-pixel weights w_v (1, or the IRLS weights of a robust fit).
+    min_{c in [0, 1]}  f(c) = sum_v || W_v c + b_v - t_v ||^2.
 
 The box matters: without it the optimum of inconsistent targets puts half the colours far outside
 [0, 1] (measured on the bonsai: -22 to 33), which a render cannot show. So the solve is a projected
@@ -30,21 +28,6 @@ taking whatever value serves one view's faint samples and showing it from every 
 on the demo scene (preview, 8 views, novel views between them): short-range warp RMSE 0.0497 at mu = 0,
 0.0471 at mu = 0.3 (the presets' value) and 0.0453 at mu = 1 (colour transfer 0.0406), patch SW unchanged
 (0.0740 / 0.0736 / 0.0735), the fit residual up to 1.17x and 1.59x the unanchored optimum's.
-
-Layer agreement (``layer_agreement`` beta > 0) adds beta sum_v sum_p sum_i w_pi || c_i - m_p ||^2, m_p = (W_v c)_p /
-alpha_p: how far the splats blended in a pixel differ from the colour they make together. Captures stack
-large splats in layers (the bonsai's cloth: 0.7 units deep under its surface), and a plain fit gives
-neighbours in a stack clashing colours (black beside (0, 0.5, 1)) that mix right only from the active
-views; a novel view sees the mix in another proportion, a blurred patch. The term is the quadratic form
-c^T (D - sum_v W_v^T diag(1 / alpha_v) W_v) c, D each splat's summed weight, so it costs no product more
-than the fit itself. Measured on the bonsai x Contrast of Forms (``standard``, beta = 0.5): the novel views'
-short-range warp RMSE 0.0586 -> 0.0413, long-range 0.134 -> 0.104, SSIM to the base 0.41 -> 0.46, but patch
-SW 8-10% further from the painting (the cloth's fine texture goes) and the patch fainter, not gone; at 0.1
-0.0472 / 0.117, 4-7% further: an option, off in the presets.
-
-A robust fit (``robust_power`` r < 2) minimises sum |W_v c + b_v - t_v|^r per pixel and channel by
-iteratively reweighted least squares, weights (res^2 + eps^2)^((r - 2) / 2): where views disagree about a
-splat, the views that agree win instead of everyone's average.
 """
 
 from __future__ import annotations
@@ -58,7 +41,6 @@ import torch
 
 from ..util.errors import ConfigError, NumericalError
 
-IRLS_EPS = 0.02  # residual (colour units) below which a robust fit weighs a pixel as least squares does
 ARMIJO = 1e-4  # sufficient decrease of the projected line search
 BACKTRACKS = 6  # halvings of the projected step before a round gives up
 
@@ -69,20 +51,14 @@ class ColorSolveSettings:
     max_rounds: int = 6  # projected rounds (each: free set, CG, projected line search)
     cg_iterations: int = 8  # conjugate-gradient iterations per round
     ridge: float = 1e-2  # lambda / mean diag(sum_v W_v^T W_v): damping of each round's step
-    robust_power: float = 2.0  # r of sum |res|^r over pixels; 2: least squares, < 2: IRLS
-    robust_rounds: int = 2  # reweighting rounds after the least-squares solve when r < 2
     anchor: float = 0.0  # mu of the proximal term mu e_bar ||c - c_0||^2 (module docstring); 0: plain least squares
-    layer_agreement: float = 0.0  # beta of the blend-variance term (module docstring); 0: none
 
     def __post_init__(self) -> None:
         checks = [
             (0.0 < self.tolerance < 1.0, "tolerance must be in (0, 1)"),
             (self.max_rounds >= 1 and self.cg_iterations >= 1, "max_rounds and cg_iterations must be >= 1"),
             (math.isfinite(self.ridge) and self.ridge > 0.0, "ridge must be finite and > 0"),
-            (0.0 < self.robust_power <= 2.0, "robust_power must be in (0, 2]"),
-            (self.robust_rounds >= 0, "robust_rounds must be >= 0"),
             (math.isfinite(self.anchor) and self.anchor >= 0.0, "anchor must be finite and >= 0"),
-            (math.isfinite(self.layer_agreement) and self.layer_agreement >= 0.0, "layer_agreement must be >= 0"),
         ]
         for ok, message in checks:
             if not ok:
@@ -94,7 +70,7 @@ class ColorSolveResult:
     colors: torch.Tensor  # [N, 3] in [0, 1]
     iterations: int  # conjugate-gradient iterations, every round together
     objectives: list[float] = field(default_factory=list)  # f at the start and after each round
-    # [N, 3] the plain least-squares optimum (no anchor, no robust weights), when it was computed
+    # [N, 3] the plain least-squares optimum (no anchor), when it was computed
     least_squares: torch.Tensor | None = None
     optimum_seconds: float = 0.0  # time the diagnostic solves took (``least_squares``, ``disagreement``; not the fit)
     disagreement: ViewDisagreement | None = None  # with ``optimum``: how far the views' targets disagree
@@ -122,9 +98,9 @@ class ViewDisagreement:
 class LinearViews:
     """The active views as linear maps of the colours: image_v = W_v c + b_v, each [P_v, 3] flat.
 
-    ``maps`` have ``matvec`` ([N, K] -> [P, K]), ``rmatvec`` ([P, K] -> [N, K]), ``column_energy``
-    ([N], sum of squared weights) and ``squared_rmatvec`` ((W o W)^T y), as
-    :class:`~dresg_addon.raster.ColorOnlyRenderer` has; ``constants`` are the b_v.
+    ``maps`` have ``matvec`` ([N, K] -> [P, K]), ``rmatvec`` ([P, K] -> [N, K]) and ``column_energy``
+    ([N], sum of squared weights), as :class:`~dresg_addon.raster.ColorOnlyRenderer` has; ``constants``
+    are the b_v.
     """
 
     def __init__(self, maps: Sequence, constants: Sequence[torch.Tensor]):
@@ -132,20 +108,6 @@ class LinearViews:
             raise ValueError("LinearViews needs one constant term per view, and at least one view")
         self.maps, self.constants = list(maps), [c.reshape(-1, 3).float() for c in constants]
         self.energy = torch.stack([m.column_energy() for m in self.maps]).sum(0).float()  # [N]
-        self._blend: tuple[torch.Tensor, list[torch.Tensor]] | None = None
-
-    def blend_weights(self) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        """(D [N, 1], V x [P, 1]): each splat's summed weight over all views' pixels, and 1 / alpha per pixel
-        (0 where alpha < 1e-6), for the blend-variance term."""
-        if self._blend is None:
-            columns = torch.zeros(self.energy.numel(), 1)
-            inverse_alphas = []
-            for m in self.maps:
-                columns = columns + m.rmatvec(torch.ones(m.shape[0], 1))
-                alpha = m.matvec(torch.ones(m.shape[1], 1))
-                inverse_alphas.append(torch.where(alpha > 1e-6, 1.0 / alpha.clamp_min(1e-6), 0.0))
-            self._blend = (columns, inverse_alphas)
-        return self._blend
 
     def __len__(self) -> int:
         return len(self.maps)
@@ -155,62 +117,34 @@ class LinearViews:
 
 
 class _Problem:
-    """f, its gradient and its damped normal-equation products for fixed targets and weights."""
+    """f, its gradient and its damped normal-equation products for fixed targets."""
 
-    def __init__(
-        self, views: LinearViews, targets, ridge: float, weights, anchor: torch.Tensor, mu: float, beta: float = 0.0
-    ):
-        self.views, self.weights = views, weights
+    def __init__(self, views: LinearViews, targets, ridge: float, anchor: torch.Tensor, mu: float):
+        self.views = views
         self.rhs = [t - b for t, b in zip(targets, views.constants)]  # t_v - b_v
         mean_energy = float(views.energy.mean().clamp_min(1e-12))
         self.ridge = ridge * mean_energy
         self.anchor, self.anchor_weight = anchor, mu * mean_energy
-        self.beta = beta
-        self.columns, self.inverse_alphas = views.blend_weights() if beta > 0 else (None, [None] * len(views))
-        if all(w is None for w in weights):
-            diagonal = views.energy[:, None].expand(-1, 3)
-        else:
-            diagonal = torch.zeros(views.energy.numel(), 3)
-            for m, w in zip(views.maps, weights):
-                diagonal = diagonal + (m.column_energy().float()[:, None] if w is None else m.squared_rmatvec(w))
-        if beta > 0:  # D bounds the blend variance's diagonal from above
-            diagonal = diagonal + beta * self.columns
+        diagonal = views.energy[:, None].expand(-1, 3)
         self.inverse_diagonal = 1.0 / (diagonal + self.ridge + self.anchor_weight)
 
     def value(self, x: torch.Tensor) -> float:
         total = self.anchor_weight * float((x - self.anchor).double().square().sum()) if self.anchor_weight else 0.0
-        for m, r, w, inverse_alpha in zip(self.views.maps, self.rhs, self.weights, self.inverse_alphas):
-            y = m.matvec(x)
-            res = (y - r).double()
-            total += float((res.square() if w is None else w * res.square()).sum())
-            if inverse_alpha is not None:
-                total -= self.beta * float((y.double().square() * inverse_alpha).sum())
-        if self.beta > 0:
-            total += self.beta * float((self.columns * x.double().square()).sum())
+        for m, r in zip(self.views.maps, self.rhs):
+            res = (m.matvec(x) - r).double()
+            total += float(res.square().sum())
         return total
 
     def gradient(self, x: torch.Tensor) -> torch.Tensor:  # half the gradient of f
         g = self.anchor_weight * (x - self.anchor)
-        if self.beta > 0:
-            g = g + self.beta * self.columns * x
-        for m, r, w, inverse_alpha in zip(self.views.maps, self.rhs, self.weights, self.inverse_alphas):
-            y = m.matvec(x)
-            pixels = y - r if w is None else (y - r) * w
-            if inverse_alpha is not None:
-                pixels = pixels - self.beta * y * inverse_alpha
-            g = g + m.rmatvec(pixels)
+        for m, r in zip(self.views.maps, self.rhs):
+            g = g + m.rmatvec(m.matvec(x) - r)
         return g
 
     def normal(self, p: torch.Tensor) -> torch.Tensor:  # the Hessian of f (halved) times p; one W_v, W_v^T each
         out = (self.ridge + self.anchor_weight) * p
-        if self.beta > 0:
-            out = out + self.beta * self.columns * p
-        for m, w, inverse_alpha in zip(self.views.maps, self.weights, self.inverse_alphas):
-            y = m.matvec(p)
-            pixels = y if w is None else y * w
-            if inverse_alpha is not None:
-                pixels = pixels - self.beta * y * inverse_alpha
-            out = out + m.rmatvec(pixels)
+        for m in self.views.maps:
+            out = out + m.rmatvec(m.matvec(p))
         return out
 
 
@@ -251,16 +185,12 @@ def projected_solve(
     targets: Sequence[torch.Tensor],  # V x [P, 3]
     start: torch.Tensor,  # [N, 3]: the warm start
     settings: ColorSolveSettings,
-    weights: Sequence[torch.Tensor | None] | None = None,  # V x [P, 3] per-pixel weights (None: 1)
     each_round: Callable[[int, float, torch.Tensor], None] | None = None,  # (round, objective, colours) after each
-    anchor: torch.Tensor | None = None,  # [N, 3] c_0 of the anchor term (None: ``start``)
 ) -> ColorSolveResult:
-    """min f(c) (+ the anchor term) over c in [0, 1]^(N x 3) by projected Newton-CG rounds (module
-    docstring)."""
-    weights = list(weights) if weights is not None else [None] * len(views)
+    """min f(c) (+ the anchor term toward ``start``) over c in [0, 1]^(N x 3) by projected Newton-CG rounds
+    (module docstring)."""
     x = start.detach().float().clamp(0.0, 1.0)
-    anchor = x.clone() if anchor is None else anchor.detach().float().clamp(0.0, 1.0)
-    problem = _Problem(views, targets, settings.ridge, weights, anchor, settings.anchor, settings.layer_agreement)
+    problem = _Problem(views, targets, settings.ridge, x.clone(), settings.anchor)
     value = problem.value(x)
     objectives, total = [value], 0
     if not math.isfinite(value):
@@ -310,7 +240,7 @@ def view_disagreement(
     """Each view's residual at the joint optimum against its own bounded least-squares optimum (each solve warm-
     started from ``joint``, unanchored), over its covered pixels (alpha > ``covered``). One single-view solve per
     view costs about one joint solve: a diagnostic, run when the optimum is logged."""
-    plain = replace(settings, anchor=0.0, layer_agreement=0.0, robust_power=2.0)
+    plain = replace(settings, anchor=0.0)
     joint_rmse, single_rmse = [], []
     for m, b, target in zip(views.maps, views.constants, targets):
         alpha = m.matvec(torch.ones(m.shape[1], 1))
@@ -329,8 +259,7 @@ def solve_colors(
     each_round: Callable[[int, float, torch.Tensor], None] | None = None,  # (round, objective, colours) after each
     optimum: bool = False,
 ) -> ColorSolveResult:
-    """The fitted colours in [0, 1]: bounded least squares (anchored to ``start`` when ``settings.anchor`` > 0),
-    then IRLS rounds when ``robust_power`` < 2.
+    """The fitted colours in [0, 1]: bounded least squares, anchored to ``start`` when ``settings.anchor`` > 0.
 
     ``least_squares`` of the result holds the plain bounded least-squares optimum, the joint optimum the log
     reports: the least-squares solve itself when it is unanchored, else, only when ``optimum`` is asked for,
@@ -347,22 +276,10 @@ def solve_colors(
             raise NumericalError("a colour-fit target has non-finite values")
     anchor = start.detach().float().clamp(0.0, 1.0)
     result = projected_solve(views, flat, anchor, settings, each_round=each_round)
-    least_squares = result.colors if settings.anchor == 0.0 and settings.layer_agreement == 0.0 else None
-    if settings.robust_power < 2.0:
-        for _ in range(settings.robust_rounds):
-            residuals = [img - t for img, t in zip(views.images(result.colors), flat)]
-            # Normalised so that a pixel fitted within IRLS_EPS weighs about 1, as in least squares.
-            weights = [
-                (res.square() + IRLS_EPS**2).pow((settings.robust_power - 2.0) / 2.0)
-                * IRLS_EPS ** (2.0 - settings.robust_power)
-                for res in residuals
-            ]
-            robust = projected_solve(views, flat, result.colors, settings, weights, each_round, anchor)
-            robust.iterations += result.iterations
-            result = robust
+    least_squares = result.colors if settings.anchor == 0.0 else None
     started = time.perf_counter()
     if least_squares is None and optimum:
-        plain = replace(settings, anchor=0.0, layer_agreement=0.0)
+        plain = replace(settings, anchor=0.0)
         least_squares = projected_solve(views, flat, result.colors, plain).colors
     if optimum:
         result.disagreement = view_disagreement(views, flat, least_squares, settings)

@@ -26,9 +26,10 @@ import math
 from dataclasses import dataclass, fields, replace
 
 from ..util.errors import ConfigError
+from .backends import BACKENDS
 
 SCHEDULES = ("snr-balanced", "fixed-1", "fixed-2", "triangle", "timestep-cosine")
-PROPOSALS = ("synth", "sd15")
+PROPOSALS = tuple(BACKENDS)  # the registered proposal backends (backends.py)
 SH_REST_MODES = ("keep", "zero")
 COLOR_FITS = ("solve", "adam")
 
@@ -82,8 +83,8 @@ class ProposalSettings:
     stroke_size: float = 1.0
     # Paint <-> Scene in [0, 1]: how much of the scene's structure the painting may override. 0: the painting
     # overrides the scene's forms; 1: the scene's forms and light are kept. Texture finer than the strokes always
-    # comes from the painting. Each backend maps it to its own content weight w_c (loop.synth_content_weight,
-    # loop.sd15_content_weight): 0.5 is sd15's paper w_c 0.15 and the synth backend's w_c 1.
+    # comes from the painting. Each backend maps it to its own content weight w_c (backends.synth_content_weight,
+    # backends.sd15_content_weight): 0.5 is sd15's paper w_c 0.15 and the synth backend's w_c 1.
     scene_weight: float = 0.5
     # How strongly a view keeps to what earlier views proposed (synth); 0: views alone. 16 rather than 4: marks that
     # agree are what the fit keeps (bonsai x Starry Night, preview: the capture's texture kept 0.27 -> 0.22)
@@ -313,6 +314,16 @@ class StylizeConfig:
     ablation: AblationSettings = AblationSettings()
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        # StylizeConfig(proposal="sd15") would hold a string where the group goes, and config.proposal.backend
+        # would fail far from the mistake: flat names go through with_ or preset.
+        for group, kind in GROUPS.items():
+            if not isinstance(getattr(self, group), kind):
+                raise ConfigError(
+                    f"StylizeConfig({group}=...) takes a {kind.__name__}; "
+                    f"name flat settings through with_ or preset (e.g. StylizeConfig().with_({group}=...))"
+                )
+
     def with_(self, **changes) -> StylizeConfig:
         """A copy with settings changed, named flat or dotted: ``with_(stages=6, **{"solve.anchor": 1.0})``."""
         groups: dict[str, dict] = {}
@@ -349,13 +360,14 @@ def check_run_settings(config: StylizeConfig) -> None:
             "the w/o K_s and w/o V_s ablations change the attention energy; the synth backend has none "
             "(use --proposal sd15 for them)"
         )
-    if proposal.backend == "sd15":
-        if not proposal.model_path:
-            raise ConfigError("the sd15 proposal backend needs a local model path (--model PATH)")
-        if proposal.width % 8 or proposal.height % 8:
-            raise ConfigError(
-                f"the sd15 proposal size must be a multiple of 8 (got {proposal.width}x{proposal.height}), e.g. 448x320"
-            )
+    backend = BACKENDS[proposal.backend]
+    if proposal.width % backend.size_multiple or proposal.height % backend.size_multiple:
+        raise ConfigError(
+            f"the {backend.name} proposal size must be a multiple of {backend.size_multiple} (got "
+            f"{proposal.width}x{proposal.height}), e.g. 448x320"
+        )
+    if reason := backend.unavailable(proposal.model_path):
+        raise ConfigError(reason)
 
 
 PRESETS: dict[str, StylizeConfig] = {

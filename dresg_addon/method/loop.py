@@ -35,6 +35,7 @@ from ..scene.gaussians import GaussianScene, blend_colors
 from ..util.errors import CameraError, ConfigError, NumericalError
 from ..util.machine import peak_rss_mb
 from . import views as view_selection
+from .backends import BackendSettings, backend, synth_stroke_sigma
 from .bookkeeping import Progress, RunHooks, RunRecord, StageUpdate, prior_costs, run_id
 from .color_transfer import covariance_color_transform, coverage_weight
 from .config import StylizeConfig, check_run_settings
@@ -158,52 +159,26 @@ def stage_improvement(distances: Sequence[float], window: int = EARLY_STOP_WINDO
     return (distances[-1 - window] - distances[-1]) / distances[-1 - window]
 
 
-CONTENT_WEIGHT_CAP = 1e3  # the synth backend's w_c at Paint <-> Scene 1: the content decides the coarse bands
-
-
-def synth_content_weight(scene_weight: float) -> float:
-    """The synth backend's content weight w_c for Paint <-> Scene ``scene_weight`` in [0, 1]: x / (1 - x), capped.
-
-    The synth fusion pulls the content's coarse bands in by W / (1 + W), W = w_c x its edge map, so x / (1 - x)
-    makes that pull x on a map of 1: 0 leaves the coarse forms to the painting, 0.5 gives w_c 1 (the presets'
-    value), 1 gives the cap (the content decides the coarse bands); never inf or NaN.
-    """
-    if scene_weight >= 1.0:
-        return CONTENT_WEIGHT_CAP
-    return min(scene_weight / (1.0 - scene_weight), CONTENT_WEIGHT_CAP)
-
-
-def sd15_content_weight(scene_weight: float) -> float:
-    """The sd15 backend's content-query weight w_c (Eq. 8) for Paint <-> Scene ``scene_weight`` in [0, 1]:
-    0.3 x, so 0.5 gives the paper's 0.15 and 1 twice that."""
-    return 0.3 * scene_weight
-
-
 def _proposal_backend(config: StylizeConfig, device):
-    """The configured proposal backend; the run's seed and content weight w_c (from Paint <-> Scene) go to every
-    backend that has them, the stroke scale to synth, the ``device`` to sd15 (synth has no network)."""
-    from .proposal import EnergyTerms, make_backend
-
-    if config.proposal.backend == "synth":
-        weight = synth_content_weight(config.proposal.scene_weight) if config.ablation.use_content_query else 0.0
-        return make_backend("synth", seed=config.seed, content_weight=weight, content_sigma=stroke_sigma(config))
-    backend = make_backend("sd15", model_path=config.proposal.model_path, device=device)
-    backend.learning_rate = config.proposal.latent_lr
-    backend.terms = EnergyTerms(
-        sd15_content_weight(config.proposal.scene_weight),
-        config.ablation.use_content_query,
-        config.ablation.use_style_keys,
-        config.ablation.use_style_values,
+    """The configured proposal backend, built by its registry entry from the run's settings it declares."""
+    proposal, ablation = config.proposal, config.ablation
+    settings = BackendSettings(
+        seed=config.seed,
+        stroke_size=proposal.stroke_size,
+        scene_weight=proposal.scene_weight,
+        use_content_query=ablation.use_content_query,
+        use_style_keys=ablation.use_style_keys,
+        use_style_values=ablation.use_style_values,
+        latent_lr=proposal.latent_lr,
+        model_path=proposal.model_path,
+        device=device,
     )
-    return backend
+    return backend(proposal.backend).make(settings)
 
 
 def stroke_sigma(config: StylizeConfig) -> float:
-    """The synth backend's stroke scale in pixels of the proposal size: its content sigma x Stroke Size (the
-    scene's forms act above it, the painting's texture below it)."""
-    from .proposal.synth import SynthSettings
-
-    return SynthSettings.content_sigma * config.proposal.stroke_size
+    """The synth backend's stroke scale in pixels of the proposal size (:func:`~.backends.synth_stroke_sigma`)."""
+    return synth_stroke_sigma(config.proposal.stroke_size)
 
 
 def style_size(config: StylizeConfig) -> tuple[int, int]:

@@ -118,7 +118,8 @@ class ProposalBackend(ABC):
 class AttentionBackend(ProposalBackend):
     """A latent with self-attention features; ``propose`` descends the attention energy (``optimize_proposal``).
 
-    ``terms`` (the content weight and the ablation switches) and ``learning_rate`` are set by the caller.
+    ``terms`` (the content weight and the ablation switches) and ``learning_rate`` come with the subclass's
+    constructor (the registry's factory, ``method/backends.py``).
     The coverage map is not used: the paper's proposals cover the whole image.
     """
 

@@ -20,7 +20,6 @@ import hashlib
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, suppress
-from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
@@ -28,7 +27,7 @@ import torch
 
 from ...util.errors import ConfigError, ModelError, NumericalError, with_path
 from ..schedule import SD15_TRAIN_TIMESTEPS
-from .base import AttentionBackend, AttentionFeatures
+from .base import AttentionBackend, AttentionFeatures, EnergyTerms
 from .sd15_configs import EMPTY_PROMPT_IDS, SD15Configs
 
 LATENT_SCALE = 0.18215  # SD1.x VAE latent scaling
@@ -376,50 +375,6 @@ def _check_architecture(path: Path, models: dict) -> None:
         raise ModelError(with_path(path, "the text encoder is not CLIP's (77 positions, 49408 tokens expected)"))
 
 
-# --- cost estimate ---------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class SD15Costs:
-    """Seconds per pass at 448x320 (latent 4x40x56); defaults measured on 2 CPU cores, fp32, torch 2.13."""
-
-    unet_forward: float = 2.5
-    unet_backward: float = 2.6
-    vae_encode: float = 2.6
-    vae_decode: float = 4.8
-
-    @property
-    def seconds_per_update(self) -> float:
-        """One latent update: render forward + backward, plus the content reference forward."""
-        return 2.0 * self.unet_forward + self.unet_backward
-
-
-def estimate_cpu_seconds(
-    views: int,
-    stages: int = 20,
-    updates_per_stage: int = 10,
-    width: int = 448,
-    height: int = 320,
-    use_content: bool = True,
-    costs: SD15Costs | None = None,
-) -> float:
-    """Wall time of all sd15 proposals of a run, so a user can be told before a CPU run starts.
-
-    Per stage and view: encode the render, ``updates_per_stage`` x (render forward + backward and a
-    content forward), decode the proposal. Per stage: one style forward per update (cached across
-    views). Once: the content and style encodes (cached). Costs scale linearly with the pixel count.
-    """
-    if views < 0 or stages < 0 or updates_per_stage < 0 or width <= 0 or height <= 0:
-        raise ConfigError("estimate_cpu_seconds: counts must be >= 0 and the size positive")
-    costs = costs or SD15Costs()
-    scale = (width * height) / (448.0 * 320.0)
-    update = costs.unet_forward + costs.unet_backward + (costs.unet_forward if use_content else 0.0)
-    per_view_stage = updates_per_stage * update + costs.vae_encode + costs.vae_decode
-    per_stage = views * per_view_stage + updates_per_stage * costs.unet_forward
-    once = (views if use_content else 0) * costs.vae_encode + costs.vae_encode
-    return scale * (stages * per_stage + once)
-
-
 # --- the backend -----------------------------------------------------------------------------------
 
 
@@ -444,7 +399,8 @@ class SD15Backend(AttentionBackend):
     ``layers`` are zero-based self-attention indices in execution order (default 10-15). Reference
     features are cached per (image content, timestep), so the style pass at a timestep runs once for
     all views; ``feature_cache_size`` entries are kept (0 turns the cache off). Tensors come back on
-    the backend's device.
+    the backend's device. ``learning_rate`` and ``terms`` (the content weight and the ablation switches)
+    are those of the attention energy's Adam step.
     """
 
     name = "sd15"
@@ -457,7 +413,10 @@ class SD15Backend(AttentionBackend):
         layers: Sequence[int] = DEFAULT_LAYERS,
         feature_cache_size: int = 24,
         configs: SD15Configs | None = None,
+        learning_rate: float = 0.05,
+        terms: EnergyTerms | None = None,  # None: the paper's (EnergyTerms())
     ):
+        self.learning_rate, self.terms = learning_rate, terms or EnergyTerms()
         self.layers = _check_layers(layers)
         if int(feature_cache_size) < 0:
             raise ConfigError(f"sd15 backend: feature_cache_size must be >= 0, got {feature_cache_size}")
