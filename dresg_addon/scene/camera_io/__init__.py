@@ -27,12 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..util.errors import CameraError, ConfigError, DresgError, with_path
-from ..util.fileutil import atomic_write_bytes, irregular_file_problem
-from .camera import Camera
-from .gaussians import GaussianScene
-from .splat_mesh import UP_AXIS_LABELS, up_axis_for
-from .up_axis import up_axis_from_splats
+from ...util.errors import CameraError, ConfigError, DresgError, with_path
+from ...util.fileutil import atomic_write_bytes, irregular_file_problem
+from ..camera import Camera
+from ..gaussians import GaussianScene
+from ..splat_mesh import UP_AXIS_LABELS, up_axis_for
+from ..up_axis import up_axis_from_splats
 
 MAX_IMAGE_SIDE = 16384  # pixels; a camera wider or taller than this is refused on read (a 16k render is ~3 GB)
 ROTATION_TOLERANCE = 1e-3  # max |R^T R - I| accepted from files (rounded decimals), then projected
