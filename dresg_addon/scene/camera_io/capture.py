@@ -10,8 +10,7 @@ import numpy as np
 from ...util.errors import CameraError, DresgError
 from ..camera import Camera
 from ..gaussians import GaussianScene
-from ..splat_mesh import UP_AXIS_LABELS, up_axis_for
-from ..up_axis import up_axis_from_splats
+from ..up_axis import UP_AXIS_LABELS, up_axis_for, up_axis_from_splats
 from .colmap import find_colmap_model
 from .load import load_cameras
 
@@ -53,10 +52,10 @@ USUAL_UP_AXIS = "-Y"  # OpenCV / COLMAP: what 3DGS training from COLMAP produces
 
 
 def detect_up_axis(scene_path: str | os.PathLike, scene: GaussianScene | None = None) -> tuple[str, str]:
-    """Which file axis points up (one of ``splat_mesh.UP_AXES``) and why, in words: the import's Automatic axes.
+    """Which file axis points up (one of ``scene.up_axis.UP_AXES``) and why, in words: the import's Automatic axes.
 
     From the capture's cameras near the file (:func:`find_capture_cameras`) when there are any: their average
-    up, snapped to an axis. Otherwise from the splats of ``scene`` (:func:`.up_axis.up_axis_from_splats`) when
+    up, snapped to an axis. Otherwise from the splats of ``scene`` (:func:`~dresg_addon.scene.up_axis.up_axis_from_splats`) when
     they are sure; otherwise -Y (OpenCV / COLMAP), the usual for 3DGS captures, saying so.
     """
     found = find_capture_cameras(scene_path)
