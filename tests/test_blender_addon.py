@@ -387,7 +387,7 @@ def test_installer_runs_commands_and_reports_failures(addon, tmp_path):
 
 
 def test_engine_modules_used_by_the_addon_do_not_import_bpy():
-    code = "import sys, dresg_addon.scene.splat_mesh, dresg_addon.scene.blender_camera, dresg_addon.scene.orbit; print('bpy' in sys.modules)"
+    code = "import sys, dresg_addon.blender.splat_mesh, dresg_addon.blender.camera, dresg_addon.scene.orbit; print('bpy' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "False"
 

@@ -17,7 +17,7 @@ Both must be clear for a confident answer; otherwise the caller keeps its defaul
 Measured on the shared scenes and the demo in bench/README.md ("Up axis from the splats").
 
 The six up axes (``UP_AXES``, ``UP_AXIS_LABELS``) and the one nearest a direction (``up_axis_for``) live here
-too: the camera files (``camera_io``) and the Blender splat object (``splat_mesh``) share them.
+too: the camera files (``camera_io``) and the Blender splat object (``blender.splat_mesh``) share them.
 """
 
 from __future__ import annotations

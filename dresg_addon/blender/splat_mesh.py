@@ -37,9 +37,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..scene.gaussians import SH_C0, GaussianScene
+from ..scene.up_axis import UP_AXES, UP_AXIS_LABELS, up_axis_for  # noqa: F401 (re-exported for callers of splat_mesh)
 from ..util.errors import SceneFormatError
-from .gaussians import SH_C0, GaussianScene
-from .up_axis import UP_AXES, UP_AXIS_LABELS, up_axis_for  # noqa: F401 (re-exported: the add-on uses them from here)
 
 COLOR = "color"
 OPACITY = "opacity"
