@@ -437,9 +437,10 @@ def test_extension_zip_builds_and_installs(tmp_path):
     # What Blender runs, and nothing else: no CLI, evaluation (report, plots, stability suite), tests or benchmarks.
     assert shipped == {
         "blender_manifest.toml", "__init__.py", "LICENSE", "operators", "ui",
-        "dresg_addon/__init__.py", "dresg_addon/method", "dresg_addon/raster", "dresg_addon/scene", "dresg_addon/util",
+        "dresg_addon/__init__.py", "dresg_addon/blender", "dresg_addon/method", "dresg_addon/raster", "dresg_addon/scene",
+        "dresg_addon/util",
     }, sorted(shipped)
-    assert {"operators/stylize.py", "ui/panels.py", "dresg_addon/method/loop.py", "dresg_addon/scene/gaussians.py"} <= set(names)
+    assert {"operators/stylize.py", "ui/panels.py", "dresg_addon/method/loop.py", "dresg_addon/scene/gaussians.py", "dresg_addon/blender/splat_mesh.py"} <= set(names)
     assert not [n for n in names if "__pycache__" in n or n.endswith((".pyc", ".jpg", ".png"))]
 
     code = textwrap.dedent(
