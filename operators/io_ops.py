@@ -86,9 +86,9 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
     )
 
     def execute(self, context):
+        from ..dresg_addon.blender.splat_mesh import AXIS_CONVERSION_UP
         from ..dresg_addon.scene.camera_io import detect_up_axis
         from ..dresg_addon.scene.io import InvalidSplatsWarning, read_scene_detailed
-        from ..dresg_addon.scene.splat_mesh import AXIS_CONVERSION_UP
 
         start = time.perf_counter()
         try:

@@ -17,7 +17,7 @@ from ..dresg_addon.method.config import (
     preset_description,
     preset_label,
 )
-from ..dresg_addon.scene.splat_mesh import UP_AXES
+from ..dresg_addon.scene.up_axis import UP_AXES
 
 # Panel fields named as StylizeConfig settings (flat names), copied by a preset and read back by config().
 CONFIG_FIELDS = (

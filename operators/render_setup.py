@@ -25,7 +25,7 @@ import threading
 
 import bpy
 
-from ..dresg_addon.scene.blender_camera import blender_intrinsics
+from ..dresg_addon.blender.camera import blender_intrinsics
 from .splat_nodes import INPUT_CORE_ALPHA, INPUT_PIXEL, INPUT_PIXEL_WIDTH, INPUT_SOFT, INPUT_SOLID
 from .splat_object import modifier_input, set_modifier_input, splat_modifier
 from .views import camera_params

@@ -10,7 +10,7 @@ import functools
 import bmesh
 import bpy
 
-from ..dresg_addon.scene import splat_mesh as sm
+from ..dresg_addon.blender import splat_mesh as sm
 
 NODE_GROUP = "DReSG Gaussian Splats"
 NODE_GROUP_VERSION = 4  # bump when the tree changes; older trees are rebuilt in place
@@ -226,7 +226,7 @@ def _build_node_group(group) -> None:
     links.new(visible.outputs[0], selection.inputs[0])
     links.new(capped.outputs[0], selection.inputs[1])
 
-    # Disk frame: the smallest axis becomes the instance's Z (see dresg_addon.scene.splat_mesh).
+    # Disk frame: the smallest axis becomes the instance's Z (see dresg_addon.blender.splat_mesh).
     scale_attr = named(sm.SCALE, "FLOAT_VECTOR", -1150, 0)
     xyz = node("ShaderNodeSeparateXYZ", -1000, 0)
     links.new(scale_attr, xyz.inputs[0])

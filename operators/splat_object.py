@@ -1,6 +1,6 @@
 """The splat object: a mesh with one vertex per Gaussian, its Geometry Nodes preview and its material.
 
-Arrays come from and go to :mod:`dresg_addon.scene.splat_mesh` (which documents every attribute); this
+Arrays come from and go to :mod:`dresg_addon.blender.splat_mesh` (which documents every attribute); this
 module only moves them in and out of Blender with ``foreach_set`` / ``foreach_get``; the preview's node trees
 and materials are built by :mod:`.splat_nodes`. Object custom properties:
 
@@ -27,7 +27,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..dresg_addon.scene import splat_mesh as sm
+from ..dresg_addon.blender import splat_mesh as sm
 from ..dresg_addon.scene.gaussians import GaussianScene, blend_coefficients
 from ..dresg_addon.util.errors import DresgError, SceneFormatError
 from .splat_nodes import (

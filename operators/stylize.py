@@ -5,7 +5,7 @@ import os
 import bpy
 import numpy as np
 
-from ..dresg_addon.scene import splat_mesh
+from ..dresg_addon.blender import splat_mesh
 from ..dresg_addon.util.errors import DresgError, ImageError
 from . import ADDON_PACKAGE, job
 from .splat_object import is_splat_object, object_mode, restore_original, selection_mask, stylized_scene

@@ -1,7 +1,7 @@
 """Views: the scene's cameras as engine cameras, coverage-based view selection, orbit cameras.
 
 Cameras are converted in the splat object's LOCAL frame (its transform, axis conversion included,
-is respected) by :mod:`dresg_addon.scene.blender_camera`; the render resolution is the scene's.
+is respected) by :mod:`dresg_addon.blender.camera`; the render resolution is the scene's.
 """
 
 import os
@@ -11,7 +11,7 @@ import numpy as np
 from bpy_extras.io_utils import ImportHelper
 from mathutils import Matrix
 
-from ..dresg_addon.scene import blender_camera
+from ..dresg_addon.blender import camera as blender_camera
 from ..dresg_addon.util.errors import DresgError
 from .splat_object import is_splat_object, object_mode, scene_from_object, selection_mask
 from .tasks import CancelJobOperator, Job, JobOperator, JobState
@@ -275,8 +275,8 @@ class DRESG_OT_add_orbit_cameras(bpy.types.Operator):
         return self.execute(context)
 
     def execute(self, context):
+        from ..dresg_addon.blender.splat_mesh import local_up
         from ..dresg_addon.scene.orbit import orbit_cameras
-        from ..dresg_addon.scene.splat_mesh import local_up
 
         obj, scene = context.active_object, context.scene
         width, height = blender_camera.render_size(_render_params(scene))

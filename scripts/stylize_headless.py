@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         scene = bpy.context.scene
         axes = AXES[args.axes]
         if axes == "AUTO" and args.cameras:  # the views' own up
-            camera_io, splat_mesh = engine("scene.camera_io"), engine("scene.splat_mesh")
+            camera_io, splat_mesh = engine("scene.camera_io"), engine("blender.splat_mesh")
             axes = splat_mesh.axis_conversion_for_up(camera_io.mean_camera_up(camera_io.load_cameras(args.cameras)))
             print(f"[stylize] axes: {splat_mesh.AXIS_LABELS[axes]}, from the cameras in {args.cameras}")
         bpy.ops.dresg.import_splats(filepath=args.ply, axis_conversion=axes)

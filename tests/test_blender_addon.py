@@ -387,7 +387,7 @@ def test_installer_runs_commands_and_reports_failures(addon, tmp_path):
 
 
 def test_engine_modules_used_by_the_addon_do_not_import_bpy():
-    code = "import sys, dresg_addon.scene.splat_mesh, dresg_addon.scene.blender_camera, dresg_addon.scene.orbit; print('bpy' in sys.modules)"
+    code = "import sys, dresg_addon.blender.splat_mesh, dresg_addon.blender.camera, dresg_addon.scene.orbit; print('bpy' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "False"
 
@@ -437,9 +437,10 @@ def test_extension_zip_builds_and_installs(tmp_path):
     # What Blender runs, and nothing else: no CLI, evaluation (report, plots, stability suite), tests or benchmarks.
     assert shipped == {
         "blender_manifest.toml", "__init__.py", "LICENSE", "operators", "ui",
-        "dresg_addon/__init__.py", "dresg_addon/method", "dresg_addon/raster", "dresg_addon/scene", "dresg_addon/util",
+        "dresg_addon/__init__.py", "dresg_addon/blender", "dresg_addon/method", "dresg_addon/raster", "dresg_addon/scene",
+        "dresg_addon/util",
     }, sorted(shipped)
-    assert {"operators/stylize.py", "ui/panels.py", "dresg_addon/method/loop.py", "dresg_addon/scene/gaussians.py"} <= set(names)
+    assert {"operators/stylize.py", "ui/panels.py", "dresg_addon/method/loop.py", "dresg_addon/scene/gaussians.py", "dresg_addon/blender/splat_mesh.py"} <= set(names)
     assert not [n for n in names if "__pycache__" in n or n.endswith((".pyc", ".jpg", ".png"))]
 
     code = textwrap.dedent(

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon.scene import splat_mesh as sm
+from dresg_addon.blender import splat_mesh as sm
 from dresg_addon.scene.camera_io import write_cameras_json
 from dresg_addon.scene.gaussians import GaussianScene
 from dresg_addon.scene.io import write_scene
@@ -343,7 +343,7 @@ def test_two_paintings_on_two_selections_and_restore_per_selection(addon, tmp_pa
     from dresg_addon.util.imageio import write_image
 
     ops = addon.operators
-    sm_ = addon.dresg_addon.scene.splat_mesh
+    sm_ = addon.dresg_addon.blender.splat_mesh
     obj, settings = _quick_selection_scene(tmp_path)
     for name, colour in (("red", (0.9, 0.1, 0.1)), ("blue", (0.1, 0.2, 0.9))):
         noise = np.random.default_rng(len(name)).uniform(-0.1, 0.1, (24, 32, 3))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from test_blender_artist import _import, _quick_selection_scene, _scene
 
-from dresg_addon.scene import splat_mesh as sm
+from dresg_addon.blender import splat_mesh as sm
 from dresg_addon.util.imageio import write_image
 
 bpy = pytest.importorskip("bpy")

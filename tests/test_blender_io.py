@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon.scene import splat_mesh as sm
+from dresg_addon.blender import splat_mesh as sm
 from dresg_addon.scene.gaussians import SH_C0, GaussianScene
 from dresg_addon.scene.io import read_scene, write_scene
 from dresg_addon.scene.orbit import orbit_cameras

@@ -1,9 +1,9 @@
-"""dresg_addon.scene.splat_mesh: the numpy side of the Blender splat object (no bpy needed)."""
+"""dresg_addon.blender.splat_mesh: the numpy side of the Blender splat object (no bpy needed)."""
 
 import numpy as np
 import pytest
 
-from dresg_addon.scene import splat_mesh as sm
+from dresg_addon.blender import splat_mesh as sm
 from dresg_addon.scene.gaussians import SH_C0, GaussianScene
 from dresg_addon.util.errors import SceneFormatError
 

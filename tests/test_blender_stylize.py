@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon.scene import splat_mesh as sm
+from dresg_addon.blender import splat_mesh as sm
 from dresg_addon.scene.io import read_scene
 from dresg_addon.util.imageio import read_image
 

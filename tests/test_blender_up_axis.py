@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from test_up_axis import TURN_Z_TO, blob, floor_and_object, turned
 
-from dresg_addon.scene import splat_mesh as sm
+from dresg_addon.blender import splat_mesh as sm
 from dresg_addon.scene.io import write_scene
 
 bpy = pytest.importorskip("bpy")

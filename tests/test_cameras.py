@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dresg_addon.scene.blender_camera import (
+from dresg_addon.blender.camera import (
     BLENDER_TO_OPENCV,
     BlenderCameraParams,
     blender_intrinsics,
@@ -737,7 +737,7 @@ def test_clip_distances_cover_the_box_at_any_scale():
 
 
 def test_up_axis_comes_from_the_capture_cameras(tmp_path):
-    from dresg_addon.scene.splat_mesh import axis_conversion_for_up, up_axis_for
+    from dresg_addon.blender.splat_mesh import axis_conversion_for_up, up_axis_for
 
     scene = GaussianScene(
         means=np.random.default_rng(0).normal(size=(50, 3)).astype(np.float32),

@@ -47,7 +47,7 @@ def test_every_command_has_help(command, capsys):
 
 
 # Bottom to top; a module may import its own layer and those below it, never one above.
-LAYERS = ("util", "scene", "raster", "method", "evaluation", "commands")
+LAYERS = ("util", "scene", "blender", "raster", "method", "evaluation", "commands")
 ENGINE = REPO / "dresg_addon"
 
 
@@ -103,6 +103,16 @@ def test_imports_only_go_downward():
     ]
     assert not upward, "\n".join(upward)
     assert len(imports) > 100  # the walk saw the engine's imports
+
+
+def test_the_blender_math_is_for_the_add_on_only():
+    """dresg_addon.blender (Blender's conventions as numpy math) serves the add-on: no other engine package imports it."""
+    importers = {
+        module
+        for module, target, _ in _engine_imports()
+        if target.startswith("dresg_addon.blender") and not module.startswith("dresg_addon.blender")
+    }
+    assert not importers
 
 
 def test_the_settings_enter_the_method_at_the_loop_only():

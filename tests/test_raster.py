@@ -423,7 +423,7 @@ def test_cuda_matches_cpu():
 
 def test_blender_preview_uses_the_rasterizers_low_pass():
     """splat_mesh keeps its own copy (the add-on imports it without torch); they must agree."""
+    from dresg_addon.blender import splat_mesh
     from dresg_addon.raster.projection import LOW_PASS
-    from dresg_addon.scene import splat_mesh
 
     assert splat_mesh.LOW_PASS == LOW_PASS

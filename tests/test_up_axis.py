@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dresg_addon.scene import splat_mesh as sm
+from dresg_addon.blender import splat_mesh as sm
 from dresg_addon.scene.camera_io import detect_up_axis
 from dresg_addon.scene.demo import demo_scene
 from dresg_addon.scene.gaussians import GaussianScene

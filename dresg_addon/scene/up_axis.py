@@ -15,6 +15,9 @@ Two pieces of evidence, each measured along the file's three axes:
 
 Both must be clear for a confident answer; otherwise the caller keeps its default (OpenCV / COLMAP: -Y up).
 Measured on the shared scenes and the demo in bench/README.md ("Up axis from the splats").
+
+The six up axes (``UP_AXES``, ``UP_AXIS_LABELS``) and the one nearest a direction (``up_axis_for``) live here
+too: the camera files (``camera_io``) and the Blender splat object (``blender.splat_mesh``) share them.
 """
 
 from __future__ import annotations
@@ -36,10 +39,28 @@ END_SLABS = (0.05, 0.1, 0.2)  # end slabs, as fractions of the trimmed height
 PLANE_SURE = 1.3  # plane_ratio from which the axis is trusted
 FOOTPRINT_SURE = 1.25  # footprint_ratio from which the sign is trusted
 
+# Which file axis points up in Blender: the splat object's Up Axis, and what the import's Axes choose.
+UP_AXES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+UP_AXIS_LABELS = {
+    "+X": "+X up",
+    "-X": "-X up",
+    "+Y": "+Y up (OpenGL, glTF)",
+    "-Y": "-Y up (OpenCV / COLMAP)",
+    "+Z": "+Z up (as Blender)",
+    "-Z": "-Z up",
+}
+
+
+def up_axis_for(direction) -> str:
+    """The one of :data:`UP_AXES` nearest a file-frame ``direction`` ([3], e.g. the cameras' mean up)."""
+    direction = np.asarray(direction, dtype=np.float64)
+    index = int(np.argmax(np.abs(direction)))
+    return ("+" if direction[index] >= 0.0 else "-") + "XYZ"[index]
+
 
 @dataclass(frozen=True)
 class UpAxisGuess:
-    axis: str  # one of splat_mesh.UP_AXES: the file axis that points up
+    axis: str  # one of UP_AXES: the file axis that points up
     plane_ratio: float  # >= 1: the densest layer across ``axis`` / the densest across the next axis
     footprint_ratio: float  # >= 1: how much wider the scene is at its bottom end than at its top end
     splats: int  # how many splats the statistics used

@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..scene.camera import Camera
 from ..util.errors import CameraError
-from .camera import Camera
 
 SENSOR_FITS = ("AUTO", "HORIZONTAL", "VERTICAL")
 BLENDER_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # Blender camera axes (y up, looks down -z) -> OpenCV

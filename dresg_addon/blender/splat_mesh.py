@@ -37,8 +37,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..scene.gaussians import SH_C0, GaussianScene
+from ..scene.up_axis import UP_AXES, UP_AXIS_LABELS, up_axis_for  # noqa: F401 (re-exported for callers of splat_mesh)
 from ..util.errors import SceneFormatError
-from .gaussians import SH_C0, GaussianScene
 
 COLOR = "color"
 OPACITY = "opacity"
@@ -275,16 +276,8 @@ LOW_PASS = 0.3
 SOFT_RADIUS = GAUSSIAN_CUTOFF_SIGMAS / ICO_INRADIUS  # sigmas from a splat's centre to its instance's vertices
 MAX_ALPHA = 0.99  # the rasterizer's cap on one splat's alpha
 
-# Which file axis points up in Blender: the splat object's Up Axis, and what the import's Axes choose.
-UP_AXES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
-UP_AXIS_LABELS = {
-    "+X": "+X up",
-    "-X": "-X up",
-    "+Y": "+Y up (OpenGL, glTF)",
-    "-Y": "-Y up (OpenCV / COLMAP)",
-    "+Z": "+Z up (as Blender)",
-    "-Z": "-Z up",
-}
+# Which file axis points up in Blender: the splat object's Up Axis, and what the import's Axes choose
+# (UP_AXES, UP_AXIS_LABELS and up_axis_for live in scene.up_axis, below this layer).
 
 
 def up_axis_vector(up_axis: str) -> np.ndarray:  # [3]
@@ -307,13 +300,6 @@ def up_axis_rotation(up_axis: str, flip: bool = False) -> np.ndarray:  # [3, 3]
     up = up_axis_vector(up_axis) * (-1.0 if flip else 1.0)
     x_axis = np.eye(3)[1 if up_axis[1] == "X" else 0]
     return np.stack([x_axis, np.cross(up, x_axis), up]) + 0.0  # + 0.0: no -0.0 entries
-
-
-def up_axis_for(direction) -> str:
-    """The one of :data:`UP_AXES` nearest a file-frame ``direction`` ([3], e.g. the cameras' mean up)."""
-    direction = np.asarray(direction, dtype=np.float64)
-    index = int(np.argmax(np.abs(direction)))
-    return ("+" if direction[index] >= 0.0 else "-") + "XYZ"[index]
 
 
 # The import's named Axes (rotations applied as the OBJECT transform, file frame -> Blender world):
