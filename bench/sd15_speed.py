@@ -156,9 +156,17 @@ def main() -> int:
 
 
 def write(report: dict, path: str | None) -> None:
-    print(json.dumps(report, indent=1), flush=True)
+    """Print the report; with ``path`` also write it atomically (a failed write: one line, exit 1)."""
+    from dresg_addon.util.errors import DresgError
+    from dresg_addon.util.fileutil import atomic_write_bytes
+
+    text = json.dumps(report, indent=1)
+    print(text, flush=True)
     if path:
-        Path(path).write_text(json.dumps(report, indent=1))
+        try:
+            atomic_write_bytes(path, text.encode("utf-8"))
+        except DresgError as error:
+            raise SystemExit(f"sd15_speed: {error}") from None
 
 
 if __name__ == "__main__":
