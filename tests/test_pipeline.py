@@ -780,6 +780,26 @@ def test_early_stop_leaves_out_the_remaining_stages_and_says_so():
     assert all(math.isfinite(e["style_distance"]) for e in full.log if e["stage"] != "post")
 
 
+def test_synth_proposes_full_detail_only_from_its_first_full_resolution_stage():
+    from dresg_addon.method.proposal.synth import SynthBackend
+    from dresg_addon.method.schedule import stage_timesteps
+
+    backend = SynthBackend()  # before any stage: the largest pyramid (3 levels), as at the presets' 448x320
+    assert [backend.full_detail(s.timesteps) for s in stage_timesteps(12, 1)] == [False] * 8 + [True] * 4
+    backend.prepare_stage([torch.rand(3, 128, 128)], torch.rand(3, 128, 128), [None], [None])  # 2 levels
+    assert [backend.full_detail(s.timesteps) for s in stage_timesteps(4, 1)] == [False, False, True, True]
+    assert all(backend.full_detail(s.timesteps) for s in stage_timesteps(2, 10))  # each stage ends at full size
+
+
+def test_early_stop_waits_for_the_stages_that_paint_at_full_detail():
+    """A style distance that settles at a coarse scale does not end the run before the fine stages paint marks."""
+    config = TINY.with_(stages=4, updates_per_stage=1, early_stop=0.999, proposal_width=128, proposal_height=128)
+    result = run(style=textured_style(), config=config)
+    stages = [e for e in result.log if e["stage"] != "post"]
+    assert [e["stage"] for e in stages] == [1, 2, 3]  # stage 3 is the first at full resolution (2 levels)
+    assert stages[-1]["early_stop"] is True
+
+
 @pytest.mark.slow  # about 1.5 min on 2 cores: a preview run at the presets' size
 def test_synth_stylization_is_as_consistent_across_novel_views_as_a_colour_transfer():
     """The fitted scene's short-range warp error on views it was not fitted on stays within 1.2x that of a

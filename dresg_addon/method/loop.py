@@ -15,7 +15,8 @@ What a scene does not need is left out:
   DC term and the rest is zeroed or kept (``StylizeConfig.sh_rest``).
 - diffusers is imported only for the ``sd15`` backend; with one active view there is no projection.
 - The stages stop early once the style distance stops improving, or once a stage's fit no longer moves
-  the scene (``StylizeConfig.early_stop``).
+  the scene (``StylizeConfig.early_stop``), judged only on stages that propose at full detail
+  (``ProposalBackend.full_detail``).
 """
 
 from __future__ import annotations
@@ -582,7 +583,7 @@ class Stylization:
         self.distances.append(self.work.distance)
         improvement = stage_improvement(self.distances)
         early_stop, moved = self.config.schedule.early_stop, self.work.closure.get("fit_moved")
-        if early_stop > 0 and stage.index < len(self.stages):
+        if early_stop > 0 and stage.index < len(self.stages) and self.backend.full_detail(stage.timesteps):
             if improvement is not None and improvement < early_stop:
                 self.work.stop_reason = (
                     f"over the last {EARLY_STOP_WINDOW} stages the style distance improved by {improvement:.1%} "

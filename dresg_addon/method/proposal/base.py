@@ -76,6 +76,15 @@ class ProposalBackend(ABC):
     # views agree; the loop builds guides only for backends that use them.
     takes_guides: bool = False
 
+    def full_detail(self, timesteps: Sequence[int]) -> bool:
+        """Whether a stage of these timesteps proposes at the backend's full detail.
+
+        The early stop judges only such stages: a coarse-to-fine backend's style distance settles at a coarse
+        scale long before its fine stages have painted the marks. An x0-predicting backend (sd15) proposes
+        whole images at every stage.
+        """
+        return True
+
     @abstractmethod
     def encode(self, image: torch.Tensor) -> torch.Tensor:
         """[3, H, W] image in [0, 1] -> state tensor (detached, float32)."""

@@ -514,6 +514,7 @@ class SynthBackend(ProposalBackend):
         self._libraries: OrderedDict = OrderedDict()
         self._contents: OrderedDict = OrderedDict()
         self._stage: _StageColors | None = None
+        self._levels: int | None = None  # the pyramid of the last prepared stage's views
 
     @staticmethod
     def _check_image(image: torch.Tensor, what: str) -> torch.Tensor:
@@ -560,6 +561,7 @@ class SynthBackend(ProposalBackend):
             for r, c in zip(renders, coverages)
         ]
         content_images = [r if c is None else self._check_image(c, "content image") for r, c in zip(renders, contents)]
+        self._levels = min(pyramid_levels(*renders[0].shape[1:], s), pyramid_levels(*style.shape[1:], s))
         style_key = _digest(style)
         content_key = _digest(*content_images, *[c for c in covers if c is not None])
         if self._stage is not None and (self._stage.style_key, self._stage.content_key) == (style_key, content_key):
@@ -595,6 +597,19 @@ class SynthBackend(ProposalBackend):
     def _sigma(self, level: int) -> float:
         """The content sigma in pixels of ``level``."""
         return self.settings.content_sigma / 2**level
+
+    def full_detail(self, timesteps: Sequence[int]) -> bool:
+        """True once the stage's last pass runs at full resolution, on the pyramid of the prepared stage's views
+        (before any, the largest, which reaches full resolution last).
+
+        With ``standard``'s 12 one-pass stages that is stage 9 on; stopped before it (as the early stop did
+        after 3-7 stages), the scene held only the coarse levels' blurred bands: no marks.
+        """
+        if not timesteps:
+            return True
+        levels = self._levels or self.settings.max_levels
+        plan = pass_scales(1.0 - self.alpha_bar(timesteps[0]), len(timesteps), levels, self.settings)
+        return plan[-1][0] == 0
 
     def propose(
         self,
