@@ -103,6 +103,7 @@ COLUMNS = (
     ("ssim", "SSIM ↑", 3),
     ("structure", "GS ↑", 3),
     ("texture_kept", "texture kept ↓", 3),
+    ("texture_kept_2x", "kept at 2x ↓", 3),
     ("shapes", "shapes ↑", 3),
     ("short_rmse", "short RMSE ↓", 4),
     ("long_rmse", "long RMSE ↓", 4),

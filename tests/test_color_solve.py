@@ -223,3 +223,50 @@ def test_view_disagreement_is_one_when_the_views_agree_and_grows_when_their_mark
     assert all(s <= j + 1e-4 for s, j in zip(single, joint))
     assert result.disagreement.ratio > 2.0
     assert solve_colors(views, painted, torch.full((80, 3), 0.5), settings).disagreement is None
+
+
+def test_the_view_average_of_a_flat_render_is_its_colour_on_every_splat_drawn_and_the_fallback_elsewhere():
+    """Targets rendered from one colour (silhouettes half covered, over a black background) give every drawn splat
+    exactly that colour, whatever colours the splats had: detail the views cannot see does not survive."""
+    from dresg_addon.method.color_solve import view_average_colors
+
+    scene = sphere_scene(n=80, far=5, seed=3)
+    views = linear_views(scene, ring_cameras(3, width=24, height=16))
+    flat = torch.tensor([0.8, 0.3, 0.1])
+    targets = views.images(flat.expand(85, 3))
+    drawn = views.energy > 0
+    assert bool(drawn[:80].any()) and not bool(drawn[80:].any())  # the far splats are in no view
+    fallback = torch.rand(85, 3, generator=torch.Generator().manual_seed(0))
+    average = view_average_colors(views, targets, fallback)
+    assert torch.allclose(average[drawn], flat.expand(int(drawn.sum()), 3), atol=1e-5)
+    assert torch.equal(average[~drawn], fallback[~drawn])
+
+
+def test_a_solve_from_the_view_average_keeps_less_of_the_start_than_one_from_the_colours(small):
+    """Two starts, one target: from the splats' own random colours the anchored solve keeps part of them where the
+    views barely constrain them; from the view average, the targets' own colour."""
+    from dresg_addon.method.color_solve import view_average_colors
+
+    scene, views = small
+    n = views.energy.numel()
+    noisy = torch.rand(n, 3, generator=torch.Generator().manual_seed(1))
+    flat = torch.full((n, 3), 0.5)
+    targets = views.images(flat)
+    settings = ColorSolveSettings(anchor=0.3)
+    kept = solve_colors(views, targets, noisy, settings).colors
+    averaged = solve_colors(views, targets, view_average_colors(views, targets, noisy), settings).colors
+    drawn = views.energy > 0
+    assert float((averaged - flat)[drawn].abs().max()) < 1e-4
+    assert float((kept - flat)[drawn].abs().max()) > 100 * float((averaged - flat)[drawn].abs().max())
+
+
+def test_the_view_average_stays_finite_on_faint_and_uncovered_pixels(small):
+    from dresg_addon.method.color_solve import view_average_colors
+
+    _, views = small
+    n = views.energy.numel()
+    targets = [torch.ones_like(b) for b in views.constants]  # white even where nothing is drawn
+    average = view_average_colors(views, targets, torch.zeros(n, 3))
+    assert torch.isfinite(average).all() and float(average.min()) >= 0.0 and float(average.max()) <= 1.0
+    with pytest.raises(NumericalError):
+        view_average_colors(views, [t * float("nan") for t in targets], torch.zeros(n, 3))

@@ -105,17 +105,22 @@ OLD_PRESETS = {
 }
 # Settings the flat config had that are gone, at the one value every preset had.
 GONE = {"layer_agreement": 0.0, "robust_power": 2.0, "log_optimum": False}
+# Settings added since, at every preset's value, and at the value that runs what the old code ran.
+ADDED = {"solve_start": "views"}
+ADDED_AS_BEFORE = {"solve_start": "colors"}
 
 
 @pytest.mark.parametrize("name", sorted(OLD_PRESETS))
 def test_every_preset_has_every_setting_it_had(name):
     old = OLD_PRESETS[name]
     config = PRESETS[name]
-    assert config.to_dict() == {k: v for k, v in old.items() if k not in GONE}
+    assert config.to_dict() == {**{k: v for k, v in old.items() if k not in GONE}, **ADDED}
     assert all(old[k] == v for k, v in GONE.items())
-    # What a checkpoint's run id hashes is the old flat settings exactly, so earlier checkpoints resume.
-    assert config.run_values() == old
-    assert {k: type(v) for k, v in config.to_dict().items()} == {k: type(old[k]) for k in config.to_dict()}
+    # A run id hashes the old flat settings and the added ones; set to what the old code ran, exactly the old
+    # settings, so earlier checkpoints resume where the run is the same.
+    assert config.run_values() == {**old, **ADDED}
+    assert config.with_(**ADDED_AS_BEFORE).run_values() == old
+    assert {k: type(v) for k, v in config.to_dict().items()} == {k: type({**old, **ADDED}[k]) for k in config.to_dict()}
 
 
 def test_settings_are_named_flat_or_dotted_and_land_in_their_group():
@@ -145,14 +150,19 @@ def test_each_group_checks_its_own_settings():
 
 def test_a_checkpoint_of_the_flat_config_resumes(tmp_path):
     """tests/data/checkpoint_flat_config.pt: stage 1 of test_pipeline's TINY run, written by the flat config's code
-    (commit b39286f). Its run id hashed the flat settings; the grouped config still matches it."""
-    from test_pipeline import run
+    (commit b39286f). Its run id hashed the flat settings; the grouped config still matches it, run as that code
+    ran (the colour solve from the splats' own colours); run as now (from the views), it starts over."""
+    from test_pipeline import TINY, run
 
     shutil.copy(DATA / "checkpoint_flat_config.pt", tmp_path / "checkpoint.pt")
     messages = []
-    result = run(checkpoint_dir=tmp_path, messages=messages.append)
+    result = run(config=TINY.with_(**ADDED_AS_BEFORE), checkpoint_dir=tmp_path, messages=messages.append)
     assert any(m.startswith("resuming after stage 1 from ") for m in messages), messages
     assert [e["stage"] for e in result.log] == [1, 2, "post"]
+    shutil.copy(DATA / "checkpoint_flat_config.pt", tmp_path / "checkpoint.pt")
+    messages.clear()
+    run(checkpoint_dir=tmp_path, messages=messages.append)
+    assert not any(m.startswith("resuming") for m in messages), messages
 
 
 def test_a_flat_config_checkpoint_of_other_settings_starts_over_in_one_line_naming_it(tmp_path):

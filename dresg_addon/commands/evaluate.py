@@ -264,6 +264,7 @@ def format_report(report: dict) -> str:
         ("SSIM", "ssim"),
         ("GS", "structure"),
         ("texture kept", "texture_kept"),
+        ("kept at 2x", "texture_kept_2x"),
         ("shapes", "shapes"),
         ("CLIP-S", "clip_s"),
         ("DINO-C", "dino_c"),

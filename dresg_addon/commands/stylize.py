@@ -15,6 +15,7 @@ from ..method.config import (
     PRESETS,
     SCHEDULES,
     SH_REST_MODES,
+    SOLVE_STARTS,
     preset,
     preset_description,
 )
@@ -112,6 +113,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="solve (default): the colour fit solved as bounded least squares over all views; adam: Adam steps",
     )
     parser.add_argument(
+        "--solve-start",
+        choices=SOLVE_STARTS,
+        help="views (default): each colour solve starts from, and its anchor holds to, what the views show of each "
+        "splat; colors: from the colours it has (the capture's, at the first stage)",
+    )
+    parser.add_argument(
         "--sh-rest", choices=SH_REST_MODES, help="zero (default): drop view-dependent SH bands; keep: keep them"
     )
     parser.add_argument("--proposal-size", metavar="WxH", help="proposal resolution (default 448x320)")
@@ -172,6 +179,7 @@ def config_from_args(args):
         ("schedule", "schedule"),
         ("color_fit", "color_fit"),
         ("sh_rest", "sh_rest"),
+        ("solve_start", "solve_start"),
     ):
         if getattr(args, name):
             overrides[field] = getattr(args, name)

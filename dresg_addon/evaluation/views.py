@@ -17,6 +17,8 @@ key                         better   what it is
 ``structure``               higher   gradient-structure similarity to the base render
 ``texture_kept``            lower    correlation of the luminance high-pass with the base render's, 4 px inside
                                      the silhouette (1: the capture's fine texture all kept; about 0: replaced)
+``texture_kept_2x``         lower    the same on renders at twice the size (8 px inside): detail finer than the
+                                     fit size, which only a closer look shows (a capture's sub-pixel texture)
 ``shapes``                  higher   SSIM of the luminance blurred by a Gaussian of sigma 3 px (1: same forms)
 ``short_rmse``              lower    view i warped into view i + 1 with the rendered depth, masked RMSE
 ``long_rmse``               lower    the same into view i + N // 2 (opposite views on a ring)
@@ -42,7 +44,7 @@ from ..util.errors import ConfigError, NumericalError
 from . import metrics
 
 SCALES = (("sw_patches", 2), ("sw_patches_half", 4), ("sw_patches_quarter", 8))  # downsampling of the 2x render
-PER_VIEW_KEYS = ("sw_colors", "ssim", "structure", "texture_kept", "shapes")
+PER_VIEW_KEYS = ("sw_colors", "ssim", "structure", "texture_kept", "texture_kept_2x", "shapes")
 KEYS = (*(key for key, _ in SCALES), *PER_VIEW_KEYS, "short_rmse", "long_rmse")
 
 
@@ -57,11 +59,13 @@ class Renders:
 
 @dataclass(frozen=True)
 class BaseViews:
-    """What the base scene gives every evaluation: its renders and the coverage of its 2x renders [2H, 2W]."""
+    """What the base scene gives every evaluation: its renders, and its 2x renders' colours [3, 2H, 2W] and coverage
+    [2H, 2W]."""
 
     cameras: list[Camera]
     renders: Renders
     alpha_2x: list[torch.Tensor]
+    rgb_2x: list[torch.Tensor]
 
 
 @dataclass
@@ -105,8 +109,10 @@ def _twice(camera: Camera) -> Camera:
 def base_views(base: GaussianScene, cameras: Sequence[Camera], settings=None, device="cpu") -> BaseViews:
     """Render the base scene once for any number of :func:`evaluate_views` calls on the same cameras."""
     cameras = list(cameras)
-    alpha_2x = [_render(base, _twice(c), settings, device, "base scene").alpha.float().cpu() for c in cameras]
-    return BaseViews(cameras, render_views(base, cameras, settings, device, "base scene"), alpha_2x)
+    large = [_render(base, _twice(c), settings, device, "base scene") for c in cameras]
+    alpha_2x = [r.alpha.float().cpu() for r in large]
+    rgb_2x = [r.rgb.float().permute(2, 0, 1).cpu() for r in large]
+    return BaseViews(cameras, render_views(base, cameras, settings, device, "base scene"), alpha_2x, rgb_2x)
 
 
 def check_camera_sizes(cameras: Sequence[Camera], patch: int = 7) -> None:
@@ -195,6 +201,9 @@ def evaluate_views(
         ("shapes", metrics.shape_similarity),
     ):
         per_view[key] = torch.stack([measure(a, b, mask=m) for a, b, m in pairs])
+    per_view["texture_kept_2x"] = torch.stack(
+        [metrics.texture_kept(a, b, mask=m, erode=8) for a, b, m in zip(large, base.rgb_2x, base.alpha_2x)]
+    )
     short, long = path_consistency(ours, cameras, depth_tolerance, alpha_threshold)
     mean = {key: float(per_view[key].mean()) for key in KEYS[:-2]}
     return ViewEvaluation(

@@ -43,6 +43,8 @@ from ..util.errors import ConfigError, NumericalError
 
 ARMIJO = 1e-4  # sufficient decrease of the projected line search
 BACKTRACKS = 6  # halvings of the projected step before a round gives up
+COVERAGE_FLOOR = 1e-3  # a pixel's coverage below this counts as this in the view average (no division by 0)
+WEIGHT_FLOOR = 1e-9  # a splat with less summed weight over all views is one no view draws
 
 
 @dataclass(frozen=True)
@@ -230,6 +232,46 @@ def _covered_rmse(image: torch.Tensor, target: torch.Tensor, alpha: torch.Tensor
     return float((image[mask].double() - target[mask].double()).square().mean().sqrt())
 
 
+def view_average_colors(
+    views: LinearViews,
+    targets: Sequence[torch.Tensor],  # V x [3, H, W] (or [P, 3])
+    fallback: torch.Tensor,  # [N, 3]: the colour of a splat no view draws
+) -> torch.Tensor:  # [N, 3] in [0, 1]
+    """Each splat's view average: what the targets show where the views draw it, c_i = sum_v sum_p W_v[p, i] u_v[p]
+    / sum_v sum_p W_v[p, i], with u_v = (t_v - b_v) / a_v the target less its constant term, divided by the pixel's
+    coverage a_v = W_v 1 (so a splat on a silhouette gets the colour drawn there, not one darkened by the
+    background). A splat no view draws keeps ``fallback``.
+
+    Least squares from a splat's own colours keeps whatever of them the views cannot see: on a capture, the
+    sub-pixel detail (the bonsai's knit, one stitch a splat) that the fit size averages away and twice it shows.
+    From the view average, splats drawn into the same pixels start alike, and the anchor holds them there.
+    """
+    flat = _flat_targets(targets, len(views))
+    numerator = torch.zeros_like(fallback, dtype=torch.float64)
+    weight = torch.zeros(fallback.shape[0], 1, dtype=torch.float64)
+    for m, b, target in zip(views.maps, views.constants, flat):
+        ones = torch.ones(m.shape[1], 1)
+        coverage = m.matvec(ones)  # [P, 1]
+        drawn = ((target - b) / coverage.clamp_min(COVERAGE_FLOOR)).clamp(0.0, 1.0)
+        numerator += m.rmatvec(drawn * coverage.gt(0)).double()
+        weight += m.rmatvec(torch.ones_like(coverage)).double()
+    seen = weight > WEIGHT_FLOOR
+    average = (numerator / weight.clamp_min(WEIGHT_FLOOR)).float().clamp(0.0, 1.0)
+    return torch.where(seen, average, fallback.float())
+
+
+def _flat_targets(targets: Sequence[torch.Tensor], views: int) -> list[torch.Tensor]:
+    """V x [3, H, W] or [P, 3] -> V x [P, 3] float32, checked finite and one per view."""
+    flat = [t.permute(1, 2, 0).reshape(-1, 3) if t.dim() == 3 else t.reshape(-1, 3) for t in targets]
+    flat = [t.float() for t in flat]
+    if len(flat) != views:
+        raise ValueError(f"{len(flat)} targets for {views} views")
+    for t in flat:
+        if not torch.isfinite(t).all():
+            raise NumericalError("a colour-fit target has non-finite values")
+    return flat
+
+
 def view_disagreement(
     views: LinearViews,
     targets: Sequence[torch.Tensor],  # V x [P, 3]
@@ -267,13 +309,7 @@ def solve_colors(
     disagree at that optimum (``view_disagreement``). ``each_round`` is called after every round
     of the fit (progress; it may raise to cancel).
     """
-    flat = [t.permute(1, 2, 0).reshape(-1, 3) if t.dim() == 3 else t.reshape(-1, 3) for t in targets]
-    flat = [t.float() for t in flat]
-    if len(flat) != len(views):
-        raise ValueError(f"{len(flat)} targets for {len(views)} views")
-    for t in flat:
-        if not torch.isfinite(t).all():
-            raise NumericalError("a colour-fit target has non-finite values")
+    flat = _flat_targets(targets, len(views))
     anchor = start.detach().float().clamp(0.0, 1.0)
     result = projected_solve(views, flat, anchor, settings, each_round=each_round)
     least_squares = result.colors if settings.anchor == 0.0 else None

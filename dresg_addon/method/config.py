@@ -32,6 +32,7 @@ SCHEDULES = ("snr-balanced", "fixed-1", "fixed-2", "triangle", "timestep-cosine"
 PROPOSALS = tuple(BACKENDS)  # the registered proposal backends (backends.py)
 SH_REST_MODES = ("keep", "zero")
 COLOR_FITS = ("solve", "adam")
+SOLVE_STARTS = ("views", "colors")
 
 
 def _check(checks) -> None:
@@ -140,6 +141,11 @@ class SolveSettings:
     # mu of the solve's pull toward the colours it starts from (color_solve.py): splats the views barely see
     # keep their colour instead of showing one view's faint samples from every other angle; 0: none.
     anchor: float = 0.3
+    # What each solve starts from, and its anchor holds to: "views", each splat's view average (what the views'
+    # targets show where it is drawn, color_solve.view_average_colors); "colors", the colours it has. From its
+    # colours, every stage inherited the capture's: sub-pixel detail the fit size cannot see, there at twice it
+    # (bonsai x Mondrian, preview: texture kept at 2x 0.21 from the colours, 0.10 from the views).
+    start: str = "views"
 
     def __post_init__(self) -> None:
         _check(
@@ -147,6 +153,7 @@ class SolveSettings:
                 (0 < self.tolerance < 1, "solve_tolerance must be in (0, 1)"),
                 (self.rounds >= 1 and self.cg_iterations >= 1, "solve_rounds and solve_cg_iterations must be >= 1"),
                 (self.anchor >= 0 and math.isfinite(self.anchor), "solve_anchor must be >= 0"),
+                (self.start in SOLVE_STARTS, f"solve_start must be one of {', '.join(SOLVE_STARTS)}"),
             ],
         )
 
@@ -276,6 +283,7 @@ _FLAT_RENAMES = {
     ("solve", "rounds"): "solve_rounds",
     ("solve", "cg_iterations"): "solve_cg_iterations",
     ("solve", "anchor"): "solve_anchor",
+    ("solve", "start"): "solve_start",
 }
 # flat name -> (group, name in the group); ``seed`` belongs to no group.
 FLAT_NAMES: dict[str, tuple[str | None, str]] = {
@@ -287,6 +295,9 @@ FLAT_NAMES["seed"] = (None, "seed")
 # patch SW, bench/README.md), robust_power < 2 (same SW as least squares at 1.6x the time), log_optimum (a
 # diagnostic of the quality bench, now ``stylize(log_optimum=True)``).
 RETIRED = {"layer_agreement": 0.0, "robust_power": 2.0, "log_optimum": False}
+# Settings added later, at the value that runs what earlier versions ran: a run id leaves them out at that value,
+# so checkpoints written before they came still resume where the run is the same.
+INTRODUCED = {"solve_start": "colors"}
 
 
 def setting_path(name: str) -> tuple[str | None, str]:
@@ -349,7 +360,8 @@ class StylizeConfig:
 
     def run_values(self) -> dict:
         """What a checkpoint's run id hashes: the flat settings and the retired ones at their one value."""
-        return {**RETIRED, **self.to_dict()}
+        values = {name: value for name, value in self.to_dict().items() if INTRODUCED.get(name, object()) != value}
+        return {**RETIRED, **values}
 
 
 def check_run_settings(config: StylizeConfig) -> None:

@@ -30,7 +30,7 @@ from ..scene.camera import Camera
 from ..scene.gaussians import GaussianScene
 from ..util.errors import CameraError, NumericalError
 from . import losses, pcgrad
-from .color_solve import ColorSolveResult, ColorSolveSettings, LinearViews, solve_colors
+from .color_solve import ColorSolveResult, ColorSolveSettings, LinearViews, solve_colors, view_average_colors
 from .optim import GeometryBounds, check_finite_gradients, project_geometry_offsets_
 
 
@@ -315,16 +315,27 @@ class BoundedColorFit:
     """Eq. 16's squared error over all active views with geometry frozen, solved to its bounded optimum
     (:func:`.color_solve.solve_colors`) instead of a fixed number of gradient steps."""
 
-    def __init__(self, renderer: ViewRenderer, fit: FitState, settings: ColorSolveSettings, optimum: bool = False):
+    def __init__(
+        self,
+        renderer: ViewRenderer,
+        fit: FitState,
+        settings: ColorSolveSettings,
+        optimum: bool = False,
+        from_views: bool = True,
+    ):
         self.views = renderer.linear_views(SOLVE_MIN_WEIGHT)
-        self.fit, self.settings, self.optimum = fit, settings, optimum
+        self.fit, self.settings, self.optimum, self.from_views = fit, settings, optimum, from_views
 
     def solve(
         self, targets: Sequence[torch.Tensor], each_round=None, start: torch.Tensor | None = None
     ) -> ColorSolveResult:  # V x [3, H, W]
-        """Solve from ``start`` (default: the current colours, which the anchor then holds to), write the colours
-        into the fit state; ``optimum``: also the plain least-squares optimum."""
-        start = self.fit.colors.detach() if start is None else start.detach()
+        """Solve from ``start`` (default: with ``from_views`` each splat's view average of the targets, else the
+        current colours; the anchor holds to it), write the colours into the fit state; ``optimum``: also the
+        plain least-squares optimum."""
+        if start is None:
+            current = self.fit.colors.detach()
+            start = view_average_colors(self.views, targets, current) if self.from_views else current
+        start = start.detach()
         result = solve_colors(self.views, targets, start, self.settings, each_round, self.optimum)
         with torch.no_grad():
             self.fit.colors.copy_(result.colors)

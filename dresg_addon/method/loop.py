@@ -375,7 +375,9 @@ class Stylization:
         optimizer = make_fit_optimizer([state.colors], geometry_params, settings, mean_params)
         base_renders = [r.clone() for r in self.renderer.all(state)]
         self.solver = (
-            BoundedColorFit(self.renderer, state, config.solve.settings(), self.log_optimum)
+            BoundedColorFit(
+                self.renderer, state, config.solve.settings(), self.log_optimum, config.solve.start == "views"
+            )
             if config.fit.solves_colors()
             else None
         )
