@@ -36,7 +36,8 @@ too), means over the evaluation views, on the pixels the scene covers (alpha > 0
   capture's own fine texture is all still there; about 0: replaced, by the painting's marks or by nothing;
   lower shows more of the painting's texture), and ``shapes``: SSIM of the two luminances blurred by a Gaussian
   of sigma 3 px (1: the same forms); both at the fit size (``metrics.texture_kept`` and
-  ``metrics.shape_similarity``);
+  ``metrics.shape_similarity``); ``kept at 2x``: texture kept on the renders at twice the size, 8 px inside
+  (the capture's detail finer than the fit size, which a closer look shows);
 - short- (neighbouring evaluation views) and long-range (opposite views) depth-warp RMSE (lower is more
   consistent; the unstylized row is the scene's own floor);
 - how far the fit got, from the run's log (stylizer rows): the smallest share of a stage's target gap its
@@ -338,6 +339,11 @@ def verdicts(results: dict, rows: list[str], quick: bool) -> list[str]:
                 f"{', '.join(f'{s} {v:.3f}' for s, v in shapes.items())} (target >= {TARGET_SHAPES} on every scene: "
                 f"{met(min(shapes.values()) >= TARGET_SHAPES)})"
             )
+            if m.get("texture_kept_2x") is not None:  # runs from before the column have none
+                lines.append(
+                    f"  - texture kept at twice the size {m['texture_kept_2x']:.3f} (no target: the capture's detail "
+                    "finer than the fit size, which a closer look shows)"
+                )
         if closed and ratios:
             lines.append(
                 f"  - the fit: every stage closed at least {100 * min(closed):.0f}% of its target gap (target "

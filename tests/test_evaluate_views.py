@@ -60,11 +60,13 @@ def test_unstylized_scene_measures_as_its_own_base():
     assert list(unstylized) == list(KEYS)
     assert unstylized["ssim"] == pytest.approx(1.0) and unstylized["structure"] == pytest.approx(1.0)
     assert unstylized["texture_kept"] == pytest.approx(1.0, abs=1e-5) and unstylized["shapes"] == pytest.approx(1.0)
+    assert unstylized["texture_kept_2x"] == pytest.approx(1.0, abs=1e-5)  # the 2x renders against themselves
     assert 0.0 <= unstylized["short_rmse"] < 0.1  # the exact warp's resampling floor
     recoloured = replace(base, sh_dc=base.sh_dc[::-1].copy())
     m = evaluate_views(recoloured, views, style)
     assert m.mean["ssim"] < 1.0 and all(v is None or np.isfinite(v) for v in m.mean.values())
     assert -1.0 <= m.mean["texture_kept"] < 1.0 and 0.0 < m.mean["shapes"] < 1.0
+    assert -1.0 <= m.mean["texture_kept_2x"] < 1.0
     assert [tuple(image.shape) for image in m.renders_2x] == [(3, 64, 96)] * 2
     assert m.style_size == (32, 32)  # the square painting's side to the cameras' shorter side
     with pytest.raises(ConfigError, match="smaller than a patch"):
