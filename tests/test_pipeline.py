@@ -576,9 +576,11 @@ def test_the_log_has_one_line_per_stage_and_saved_views_hold_four_images_per_vie
         assert entry["gap_closed"] == pytest.approx(1 - entry["fit_residual"] / entry["target_gap"])
         assert entry["optimum_residual"] is None and entry["optimum_seconds"] == 0.0
         assert entry["fit_moved"] > 0 and entry["fit_iterations"] >= 1
-    # Asked for, the joint optimum is at most what the anchored fit reached; unanchored, it is the fit.
+    # Asked for, the joint optimum is at most what the anchored fit reached (both solved to the solve's tolerance,
+    # which stops a solve once a round lowers its objective by less than that share); unanchored, it is the fit.
     for entry in run(config=config, log_optimum=True).log:
-        assert entry["optimum_residual"] <= entry["fit_residual"] + 1e-6 and entry["optimum_seconds"] > 0
+        assert entry["optimum_residual"] <= entry["fit_residual"] * (1 + config.solve.tolerance)
+        assert entry["optimum_seconds"] > 0
     for entry in run(config=config.with_(solve_anchor=0.0)).log:
         assert entry["optimum_residual"] == pytest.approx(entry["fit_residual"], rel=1e-5)
     adam = run(config=config.with_(color_fit="adam")).log
