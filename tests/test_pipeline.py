@@ -601,7 +601,8 @@ def test_the_post_stage_fit_ends_near_the_optimum_of_its_colour_map():
     """The post stage's targets are one affine colour map of the renders: its solve starts from the splats' colours
     under that map and is anchored there, so the anchor does not hold the fit back from the optimum."""
     post = run(config=TINY.with_(stages=1, post_steps=2), log_optimum=True).log[-1]
-    assert post["stage"] == "post" and post["gap_closed"] > 0.2  # the optimum itself closes 0.40 of this gap
+    optimum_closed = 1.0 - post["optimum_residual"] / post["target_gap"]  # 0.16 of this gap (0.40 from the colours)
+    assert post["stage"] == "post" and optimum_closed > 0.1 and post["gap_closed"] >= 0.9 * optimum_closed
     assert post["fit_residual"] <= 1.2 * post["optimum_residual"] + 1e-4
 
 
