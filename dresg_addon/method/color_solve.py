@@ -36,6 +36,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import torch
 
@@ -116,6 +117,14 @@ class LinearViews:
 
     def images(self, colors: torch.Tensor) -> list[torch.Tensor]:  # [N, 3] -> V x [P, 3]
         return [m.matvec(colors) + b for m, b in zip(self.maps, self.constants)]
+
+    @cached_property
+    def coverages(self) -> list[torch.Tensor]:  # V x [P, 1]: each pixel's coverage W_v 1 (the render's alpha)
+        return [m.matvec(torch.ones(m.shape[1], 1)) for m in self.maps]
+
+    @cached_property
+    def drawn_weight(self) -> torch.Tensor:  # [N, 1] float64: sum_v sum_p W_v[p, i], how much the views draw a splat
+        return sum(m.rmatvec(c.new_ones(c.shape)).double() for m, c in zip(self.maps, self.coverages))
 
 
 class _Problem:
@@ -248,13 +257,10 @@ def view_average_colors(
     """
     flat = _flat_targets(targets, len(views))
     numerator = torch.zeros_like(fallback, dtype=torch.float64)
-    weight = torch.zeros(fallback.shape[0], 1, dtype=torch.float64)
-    for m, b, target in zip(views.maps, views.constants, flat):
-        ones = torch.ones(m.shape[1], 1)
-        coverage = m.matvec(ones)  # [P, 1]
+    for m, b, target, coverage in zip(views.maps, views.constants, flat, views.coverages):
         drawn = ((target - b) / coverage.clamp_min(COVERAGE_FLOOR)).clamp(0.0, 1.0)
-        numerator += m.rmatvec(drawn * coverage.gt(0)).double()
-        weight += m.rmatvec(torch.ones_like(coverage)).double()
+        numerator += m.rmatvec(drawn).double()  # a pixel no splat covers has no weight in any column
+    weight = views.drawn_weight
     seen = weight > WEIGHT_FLOOR
     average = (numerator / weight.clamp_min(WEIGHT_FLOOR)).float().clamp(0.0, 1.0)
     return torch.where(seen, average, fallback.float())
@@ -284,8 +290,7 @@ def view_disagreement(
     view costs about one joint solve: a diagnostic, run when the optimum is logged."""
     plain = replace(settings, anchor=0.0)
     joint_rmse, single_rmse = [], []
-    for m, b, target in zip(views.maps, views.constants, targets):
-        alpha = m.matvec(torch.ones(m.shape[1], 1))
+    for m, b, target, alpha in zip(views.maps, views.constants, targets, views.coverages):
         alone = LinearViews([m], [b])
         colors = projected_solve(alone, [target], joint, plain).colors
         joint_rmse.append(_covered_rmse(m.matvec(joint) + b, target, alpha, covered))

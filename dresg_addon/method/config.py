@@ -359,8 +359,12 @@ class StylizeConfig:
         return {name: self.value(name) for name in FLAT_NAMES}
 
     def run_values(self) -> dict:
-        """What a checkpoint's run id hashes: the flat settings and the retired ones at their one value."""
-        values = {name: value for name, value in self.to_dict().items() if INTRODUCED.get(name, object()) != value}
+        """What a checkpoint's run id hashes: the flat settings (an introduced one only off its earlier behaviour)
+        and the retired ones at their one value."""
+        values = self.to_dict()
+        for name, before in INTRODUCED.items():
+            if values[name] == before:
+                del values[name]
         return {**RETIRED, **values}
 
 
