@@ -270,3 +270,63 @@ def test_the_view_average_stays_finite_on_faint_and_uncovered_pixels(small):
     assert torch.isfinite(average).all() and float(average.min()) >= 0.0 and float(average.max()) <= 1.0
     with pytest.raises(NumericalError):
         view_average_colors(views, [t * float("nan") for t in targets], torch.zeros(n, 3))
+
+
+def _drawn(views: LinearViews) -> torch.Tensor:  # [V, N]: how much each view draws each splat
+    return torch.stack([m.rmatvec(c.new_ones(c.shape))[:, 0] for m, c in zip(views.maps, views.coverages)])
+
+
+def test_best_views_keep_the_joint_fit_where_the_views_agree_and_each_views_marks_where_they_do_not(small):
+    from dresg_addon.method.color_solve import best_view_colors, single_view_solutions
+
+    _, views = small
+    n = views.energy.numel()
+    settings = ColorSolveSettings(tolerance=1e-6, max_rounds=30, cg_iterations=16, anchor=0.3)
+    start = torch.full((n, 3), 0.5)
+    truth = torch.from_numpy(np.random.default_rng(8).uniform(0.2, 0.8, (n, 3)).astype(np.float32))
+    agreeing = views.images(truth)  # one set of colours shows every target: the plain fit reaches it
+    plain = replace(settings, anchor=0.0)
+    joint = solve_colors(views, agreeing, start, plain).colors
+    seen = views.energy > 0.2 * float(views.energy.max())
+    torch.testing.assert_close(
+        best_view_colors(views, agreeing, joint, plain, 4.0)[seen], joint[seen], atol=0.01, rtol=0
+    )
+    # Each view painted with its own marks: the joint fit averages them; at a stiff sharpness each splat takes
+    # the colours of the one view that draws it most, exactly (finite, although (d / max d)^1e6 underflows).
+    rng = np.random.default_rng(9)
+    painted = [views.images(torch.from_numpy(rng.uniform(0, 1, (n, 3)).astype(np.float32)))[v] for v in range(3)]
+    joint = solve_colors(views, painted, start, settings).colors
+    alone = torch.stack(single_view_solutions(views, painted, joint, settings))  # [V, N, 3]
+    drawn = _drawn(views)
+    top = drawn.topk(2, dim=0).values
+    clear = (top[0] > 0) & (top[1] < 0.9 * top[0])  # one view draws it clearly most
+    assert int(clear.sum()) > n // 4
+    sharpest = best_view_colors(views, painted, joint, settings, 1e6)
+    assert torch.isfinite(sharpest).all()
+    picked = alone[drawn.argmax(0), torch.arange(n)]
+    torch.testing.assert_close(sharpest[clear], picked[clear], atol=1e-5, rtol=0)
+    # Softer weights lie between the best view and the others; the solve setting applies them to its fit.
+    soft = best_view_colors(views, painted, joint, settings, 4.0)
+    assert float((soft - joint).abs().mean()) > 0.01
+    assert float((soft - sharpest)[clear].abs().mean()) < float((joint - sharpest)[clear].abs().mean())
+    via = solve_colors(views, painted, start, replace(settings, best_views=4.0)).colors
+    torch.testing.assert_close(via, soft)
+
+
+def test_best_views_leave_splats_no_view_draws_alone_and_refuse_a_sharpness_that_cannot_weigh():
+    from dresg_addon.method.color_solve import best_view_colors
+
+    scene = sphere_scene(n=80, far=5, seed=3)
+    views = linear_views(scene, ring_cameras(3, width=24, height=16))
+    drawn = views.energy > 0
+    joint = torch.rand(85, 3, generator=torch.Generator().manual_seed(2))
+    targets = views.images(torch.full((85, 3), 0.4))
+    settings = ColorSolveSettings(anchor=0.3)
+    best = best_view_colors(views, targets, joint, settings, 4.0)
+    assert torch.equal(best[~drawn], joint[~drawn])
+    assert torch.isfinite(best).all() and float(best.min()) >= 0.0 and float(best.max()) <= 1.0
+    for sharpness in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="sharpness"):
+            best_view_colors(views, targets, joint, settings, sharpness)
+    with pytest.raises(ConfigError, match="best_views"):
+        ColorSolveSettings(best_views=-1.0)

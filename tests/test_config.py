@@ -105,22 +105,28 @@ OLD_PRESETS = {
 }
 # Settings the flat config had that are gone, at the one value every preset had.
 GONE = {"layer_agreement": 0.0, "robust_power": 2.0, "log_optimum": False}
-# Settings added since, at every preset's value, and at the value that runs what the old code ran.
-ADDED = {"solve_start": "views"}
-ADDED_AS_BEFORE = {"solve_start": "colors"}
+# Settings added since, at each preset's value, and at the value that runs what the old code ran.
+ADDED = {
+    "standard": {"solve_start": "views", "solve_best_views": 4.0},
+    "preview": {"solve_start": "views", "solve_best_views": 4.0},
+    "paper": {"solve_start": "views", "solve_best_views": 0.0},
+    "cpu": {"solve_start": "views", "solve_best_views": 0.0},
+}
+ADDED_AS_BEFORE = {"solve_start": "colors", "solve_best_views": 0.0}
 
 
 @pytest.mark.parametrize("name", sorted(OLD_PRESETS))
 def test_every_preset_has_every_setting_it_had(name):
     old = OLD_PRESETS[name]
     config = PRESETS[name]
-    assert config.to_dict() == {**{k: v for k, v in old.items() if k not in GONE}, **ADDED}
+    added = ADDED[name]
+    assert config.to_dict() == {**{k: v for k, v in old.items() if k not in GONE}, **added}
     assert all(old[k] == v for k, v in GONE.items())
-    # A run id hashes the old flat settings and the added ones; set to what the old code ran, exactly the old
-    # settings, so earlier checkpoints resume where the run is the same.
-    assert config.run_values() == {**old, **ADDED}
+    # A run id hashes the old flat settings and the added ones that run otherwise than the old code; set to what
+    # the old code ran, exactly the old settings, so earlier checkpoints resume where the run is the same.
+    assert config.run_values() == {**old, **{k: v for k, v in added.items() if v != ADDED_AS_BEFORE[k]}}
     assert config.with_(**ADDED_AS_BEFORE).run_values() == old
-    assert {k: type(v) for k, v in config.to_dict().items()} == {k: type({**old, **ADDED}[k]) for k in config.to_dict()}
+    assert {k: type(v) for k, v in config.to_dict().items()} == {k: type({**old, **added}[k]) for k in config.to_dict()}
 
 
 def test_settings_are_named_flat_or_dotted_and_land_in_their_group():
@@ -143,6 +149,8 @@ def test_each_group_checks_its_own_settings():
         ProposalSettings(scene_weight=2.0)
     with pytest.raises(ConfigError, match="solve_anchor must be >= 0"):
         SolveSettings(anchor=-1.0)
+    with pytest.raises(ConfigError, match="solve_best_views must be >= 0"):
+        SolveSettings(best_views=float("nan"))
     with pytest.raises(ConfigError, match="exceeds ddim_steps"):
         preset("paper", stages=30)
     assert StylizeConfig(ablation=AblationSettings(feedback=False)).value("feedback") is False

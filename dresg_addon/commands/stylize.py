@@ -71,6 +71,12 @@ KNOBS = (
         float,
         "colour solve: pull toward the colours before each fit (0: plain least squares)",
     ),
+    (
+        "--best-views",
+        "solve_best_views",
+        float,
+        "colour solve: each splat from the views that draw it most, weights (d / max d)^P (0: all views' average)",
+    ),
     ("--color-lr", "color_lr", float, "Adam learning rate of the colours"),
     ("--geometry-lr", "geometry_lr", float, "Adam learning rate of the geometry offsets (means: x scene extent)"),
     ("--scene-extent", "scene_extent", float, "length the mean offsets' lr and bound scale with (0: measured)"),

@@ -317,7 +317,7 @@ def stylize_with_log(scene, cameras, style, config, log_path: Path) -> tuple[obj
     start = time.perf_counter()
 
     def progress(p):
-        if p.phase in ("fit", "post") and p.step >= 1:
+        if p.phase in ("fit", "post") and p.step >= 1 and math.isfinite(p.loss):  # NaN: a report between rounds
             steps.append((time.perf_counter() - start, "post" if p.phase == "post" else p.stage, p.step, p.loss))
 
     result = stylize(scene, cameras, style, config, progress=progress, log_path=log_path)

@@ -45,7 +45,8 @@ from ..util.errors import ConfigError, NumericalError
 ARMIJO = 1e-4  # sufficient decrease of the projected line search
 BACKTRACKS = 6  # halvings of the projected step before a round gives up
 COVERAGE_FLOOR = 1e-3  # a pixel's coverage below this counts as this in the view average (no division by 0)
-WEIGHT_FLOOR = 1e-9  # a splat with less summed weight over all views is one no view draws
+WEIGHT_FLOOR = 1e-9
+BEST_VIEW_ROUNDS = 3  # a splat with less summed weight over all views is one no view draws
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,7 @@ class ColorSolveSettings:
     cg_iterations: int = 8  # conjugate-gradient iterations per round
     ridge: float = 1e-2  # lambda / mean diag(sum_v W_v^T W_v): damping of each round's step
     anchor: float = 0.0  # mu of the proximal term mu e_bar ||c - c_0||^2 (module docstring); 0: plain least squares
+    best_views: float = 0.0  # sharpness p of best_view_colors, applied to the fit; 0: the joint fit itself
 
     def __post_init__(self) -> None:
         checks = [
@@ -62,6 +64,7 @@ class ColorSolveSettings:
             (self.max_rounds >= 1 and self.cg_iterations >= 1, "max_rounds and cg_iterations must be >= 1"),
             (math.isfinite(self.ridge) and self.ridge > 0.0, "ridge must be finite and > 0"),
             (math.isfinite(self.anchor) and self.anchor >= 0.0, "anchor must be finite and >= 0"),
+            (math.isfinite(self.best_views) and self.best_views >= 0.0, "best_views must be finite and >= 0"),
         ]
         for ok, message in checks:
             if not ok:
@@ -278,6 +281,24 @@ def _flat_targets(targets: Sequence[torch.Tensor], views: int) -> list[torch.Ten
     return flat
 
 
+def single_view_solutions(
+    views: LinearViews,
+    targets: Sequence[torch.Tensor],  # V x [P, 3]
+    start: torch.Tensor,  # [N, 3]
+    settings: ColorSolveSettings,
+    each_view: Callable[[int], None] | None = None,  # (views solved so far) after each; it may raise to cancel
+) -> list[torch.Tensor]:  # V x [N, 3]
+    """Each view's own bounded least-squares colours: view v solved alone, from ``start`` (and anchored to it when
+    ``settings.anchor`` > 0). A splat the view does not draw keeps its ``start`` colour. One solve per view costs
+    about one joint solve."""
+    solutions = []
+    for m, b, target in zip(views.maps, views.constants, targets):
+        solutions.append(projected_solve(LinearViews([m], [b]), [target], start, settings).colors)
+        if each_view is not None:
+            each_view(len(solutions))
+    return solutions
+
+
 def view_disagreement(
     views: LinearViews,
     targets: Sequence[torch.Tensor],  # V x [P, 3]
@@ -286,16 +307,48 @@ def view_disagreement(
     covered: float = 0.5,
 ) -> ViewDisagreement:
     """Each view's residual at the joint optimum against its own bounded least-squares optimum (each solve warm-
-    started from ``joint``, unanchored), over its covered pixels (alpha > ``covered``). One single-view solve per
-    view costs about one joint solve: a diagnostic, run when the optimum is logged."""
-    plain = replace(settings, anchor=0.0)
+    started from ``joint``, unanchored), over its covered pixels (alpha > ``covered``). A diagnostic, run when the
+    optimum is logged."""
+    alone = single_view_solutions(views, targets, joint, replace(settings, anchor=0.0))
     joint_rmse, single_rmse = [], []
-    for m, b, target, alpha in zip(views.maps, views.constants, targets, views.coverages):
-        alone = LinearViews([m], [b])
-        colors = projected_solve(alone, [target], joint, plain).colors
+    for m, b, target, alpha, colors in zip(views.maps, views.constants, targets, views.coverages, alone):
         joint_rmse.append(_covered_rmse(m.matvec(joint) + b, target, alpha, covered))
         single_rmse.append(_covered_rmse(m.matvec(colors) + b, target, alpha, covered))
     return ViewDisagreement(joint_rmse, single_rmse)
+
+
+def best_view_colors(
+    views: LinearViews,
+    targets: Sequence[torch.Tensor],  # V x [P, 3]
+    joint: torch.Tensor,  # [N, 3]: the joint fit
+    settings: ColorSolveSettings,
+    sharpness: float,
+    each_view: Callable[[int], None] | None = None,  # as single_view_solutions takes it
+) -> torch.Tensor:  # [N, 3] in [0, 1]
+    """Each splat coloured from the views that draw it most, instead of the least-squares average of all views.
+
+    As texturing a mesh from photos picks one view per face rather than blending all of them, which blurs
+    (Waechter, Moehrle and Goesele 2014, "Let There Be Color!"), softened so that neighbours seen best from two
+    views meet without a seam: c_i = sum_v w_vi c_vi / sum_v w_vi, with c_v view v's own solution anchored to
+    the joint fit (:func:`single_view_solutions`), w_vi = (d_vi / max_u d_ui)^p and d_vi = sum_p W_v[p, i] how
+    much view v draws splat i; p = ``sharpness`` (large: the one best view). A splat no view draws keeps its
+    joint colour. The joint fit keeps what all views agree on, and on a capture that includes its own sub-pixel
+    texture (the bonsai's knit); each view's own fit carries that view's marks instead.
+    """
+    if not (math.isfinite(sharpness) and sharpness > 0.0):
+        raise ConfigError(f"colour solver: the best views' sharpness must be finite and > 0 (got {sharpness})")
+    alone = single_view_solutions(views, targets, joint, replace(settings, max_rounds=BEST_VIEW_ROUNDS), each_view)
+    drawn = torch.stack([m.rmatvec(c.new_ones(c.shape)).double() for m, c in zip(views.maps, views.coverages)])
+    most = drawn.amax(0, keepdim=True)  # [1, N, 1]
+    # (d / max d)^p in log space: a faint view's weight underflows to 0, never to NaN
+    weights = torch.where(
+        drawn > WEIGHT_FLOOR,
+        torch.exp(sharpness * (drawn.clamp_min(WEIGHT_FLOOR).log() - most.clamp_min(WEIGHT_FLOOR).log())),
+        0.0,
+    )
+    total = weights.sum(0)  # [N, 1]
+    blended = (weights * torch.stack(alone).double()).sum(0) / total.clamp_min(WEIGHT_FLOOR)
+    return torch.where(total > WEIGHT_FLOOR, blended.float(), joint.float()).clamp(0.0, 1.0)
 
 
 def solve_colors(
@@ -305,14 +358,16 @@ def solve_colors(
     settings: ColorSolveSettings = ColorSolveSettings(),
     each_round: Callable[[int, float, torch.Tensor], None] | None = None,  # (round, objective, colours) after each
     optimum: bool = False,
+    each_view: Callable[[int], None] | None = None,  # (views solved alone so far) during the best views
 ) -> ColorSolveResult:
-    """The fitted colours in [0, 1]: bounded least squares, anchored to ``start`` when ``settings.anchor`` > 0.
+    """The fitted colours in [0, 1]: bounded least squares, anchored to ``start`` when ``settings.anchor`` > 0, then
+    with ``settings.best_views`` > 0 each splat taken from the views that draw it most (:func:`best_view_colors`).
 
     ``least_squares`` of the result holds the plain bounded least-squares optimum, the joint optimum the log
     reports: the least-squares solve itself when it is unanchored, else, only when ``optimum`` is asked for,
     a second solve without the anchor, warm-started from the fit. ``optimum`` also measures how far the views
     disagree at that optimum (``view_disagreement``). ``each_round`` is called after every round
-    of the fit (progress; it may raise to cancel).
+    of the fit, ``each_view`` after each view's own solve of the best views (progress; either may raise to cancel).
     """
     flat = _flat_targets(targets, len(views))
     anchor = start.detach().float().clamp(0.0, 1.0)
@@ -326,4 +381,6 @@ def solve_colors(
         result.disagreement = view_disagreement(views, flat, least_squares, settings)
         result.optimum_seconds = time.perf_counter() - started
     result.least_squares = least_squares
+    if settings.best_views > 0.0:
+        result.colors = best_view_colors(views, flat, result.colors, settings, settings.best_views, each_view)
     return result

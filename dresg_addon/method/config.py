@@ -146,11 +146,16 @@ class SolveSettings:
     # colours, every stage inherited the capture's: sub-pixel detail the fit size cannot see, there at twice it
     # (bonsai x Mondrian, preview: texture kept at 2x 0.21 from the colours, 0.10 from the views).
     start: str = "views"
+    # Each splat from the views that draw it most (color_solve.best_view_colors), not the average of all views:
+    # p of the views' weights (d / max d)^p, 0 off. It takes out more of the capture's sub-pixel texture on the
+    # bonsai (bench/README.md, "Each splat from its best views").
+    best_views: float = 0.0
 
     def __post_init__(self) -> None:
         _check(
             [
                 (0 < self.tolerance < 1, "solve_tolerance must be in (0, 1)"),
+                (math.isfinite(self.best_views) and self.best_views >= 0, "solve_best_views must be >= 0"),
                 (self.rounds >= 1 and self.cg_iterations >= 1, "solve_rounds and solve_cg_iterations must be >= 1"),
                 (self.anchor >= 0 and math.isfinite(self.anchor), "solve_anchor must be >= 0"),
                 (self.start in SOLVE_STARTS, f"solve_start must be one of {', '.join(SOLVE_STARTS)}"),
@@ -162,7 +167,11 @@ class SolveSettings:
         from .color_solve import ColorSolveSettings
 
         return ColorSolveSettings(
-            tolerance=self.tolerance, max_rounds=self.rounds, cg_iterations=self.cg_iterations, anchor=self.anchor
+            tolerance=self.tolerance,
+            max_rounds=self.rounds,
+            cg_iterations=self.cg_iterations,
+            anchor=self.anchor,
+            best_views=self.best_views,
         )
 
 
@@ -284,6 +293,7 @@ _FLAT_RENAMES = {
     ("solve", "cg_iterations"): "solve_cg_iterations",
     ("solve", "anchor"): "solve_anchor",
     ("solve", "start"): "solve_start",
+    ("solve", "best_views"): "solve_best_views",
 }
 # flat name -> (group, name in the group); ``seed`` belongs to no group.
 FLAT_NAMES: dict[str, tuple[str | None, str]] = {
@@ -297,7 +307,7 @@ FLAT_NAMES["seed"] = (None, "seed")
 RETIRED = {"layer_agreement": 0.0, "robust_power": 2.0, "log_optimum": False}
 # Settings added later, at the value that runs what earlier versions ran: a run id leaves them out at that value,
 # so checkpoints written before they came still resume where the run is the same.
-INTRODUCED = {"solve_start": "colors"}
+INTRODUCED = {"solve_start": "colors", "solve_best_views": 0.0}
 
 
 def setting_path(name: str) -> tuple[str | None, str]:
@@ -412,6 +422,7 @@ PRESETS: dict[str, StylizeConfig] = {
         max_views=16,
         optimize_geometry=False,
         early_stop=0.01,
+        solve_best_views=4.0,
     ),
     # A quick look: half the stages and views.
     "preview": StylizeConfig().with_(
@@ -424,6 +435,7 @@ PRESETS: dict[str, StylizeConfig] = {
         max_views=8,
         optimize_geometry=False,
         early_stop=0.01,
+        solve_best_views=4.0,
     ),
 }
 DEFAULT_PRESET = "standard"

@@ -327,7 +327,7 @@ class BoundedColorFit:
         self.fit, self.settings, self.optimum, self.from_views = fit, settings, optimum, from_views
 
     def solve(
-        self, targets: Sequence[torch.Tensor], each_round=None, start: torch.Tensor | None = None
+        self, targets: Sequence[torch.Tensor], each_round=None, start: torch.Tensor | None = None, each_view=None
     ) -> ColorSolveResult:  # V x [3, H, W]
         """Solve from ``start`` (default: with ``from_views`` each splat's view average of the targets, else the
         current colours; the anchor holds to it), write the colours into the fit state; ``optimum``: also the
@@ -336,7 +336,7 @@ class BoundedColorFit:
             current = self.fit.colors.detach()
             start = view_average_colors(self.views, targets, current) if self.from_views else current
         start = start.detach()
-        result = solve_colors(self.views, targets, start, self.settings, each_round, self.optimum)
+        result = solve_colors(self.views, targets, start, self.settings, each_round, self.optimum, each_view)
         with torch.no_grad():
             self.fit.colors.copy_(result.colors)
         return result

@@ -525,17 +525,25 @@ class Stylization:
             def counter(index: int) -> str:
                 return f"colour solve round {index} (at most {rounds})"
 
+            solved_rounds = [0]
+
             def each_round(index: int, _objective: float, colors: torch.Tensor) -> None:
+                solved_rounds[0] = index
                 if self.hooks.progress is not None:
                     renders = self.renderer.all(replace(self.state, colors=colors))
                     rmse = fit_residual(renders, targets, self.alphas, COVERED)
                     self.hooks.report(stage, index, rounds, phase, rmse, counter(index))
                 self.hooks.check_cancel()
 
+            def each_view(done: int) -> None:
+                message = f"each splat from its best views: {done}/{len(targets)} views solved alone"
+                self.hooks.report(stage, solved_rounds[0], rounds, phase, float("nan"), message)
+                self.hooks.check_cancel()
+
             self.hooks.report(stage, 0, rounds, phase, float("nan"), "colour solve starting")
             self.hooks.check_cancel()
             try:
-                result = self.solver.solve(targets, each_round, start)
+                result = self.solver.solve(targets, each_round, start, each_view)
             except NumericalError as error:
                 raise NumericalError(
                     f"{error} at {where.rsplit(',', 1)[0]}, so the run stopped{self.record.kept_note()}"
