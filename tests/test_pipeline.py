@@ -303,6 +303,37 @@ def test_cancel_from_the_progress_callback_stops_at_once(baseline):
     assert_same_scene(run(cancel=cancel).scene, baseline.scene)  # a later run is unaffected
 
 
+def test_best_views_report_each_view_cancel_between_them_and_resume_to_the_same_scene(tmp_path):
+    """The presets' best views (each view solved alone after the joint fit): the run reports each view's solve,
+    a cancel there stops it before the next, and a run resumed from its checkpoint ends where an uninterrupted
+    one does, with colours other than the joint fit's."""
+    config = TINY.with_(solve_best_views=4.0, post_steps=0)
+    cancel = threading.Event()
+    said, after_cancel = [], []
+
+    def progress(p: Progress):
+        if cancel.is_set():
+            after_cancel.append(p)
+        elif "best views" in p.message:
+            said.append(p.message)
+            if p.stage == 2 and p.message.startswith("each splat from its best views: 1/"):
+                cancel.set()
+
+    with pytest.raises(CancelledError):
+        run(config=config, progress=progress, cancel=cancel, checkpoint_dir=tmp_path)
+    assert after_cancel == []
+    views = int(said[0].split("/")[1].split()[0])
+    assert views > 1
+    assert said[:views] == [
+        f"each splat from its best views: {v}/{views} views solved alone" for v in range(1, views + 1)
+    ]
+    resumed = run(config=config, checkpoint_dir=tmp_path)
+    whole = run(config=config)
+    assert_same_scene(resumed.scene, whole.scene)
+    assert np.isfinite(whole.scene.sh_dc).all()
+    assert not np.allclose(whole.scene.sh_dc, run(config=TINY.with_(post_steps=0)).scene.sh_dc, atol=1e-4)
+
+
 # --- checkpoints, NaN ------------------------------------------------------------------------------------
 
 
