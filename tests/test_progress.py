@@ -190,3 +190,15 @@ def test_view_selection_reports_once_per_camera():
     calls = []
     select_active_views(sphere_scene(), cameras, TINY, progress=lambda done, total: calls.append((done, total)))
     assert calls == [(k, 5) for k in range(1, 6)]
+
+
+def test_the_fits_prior_cost_counts_what_the_fit_runs():
+    """Before a stage is timed the bar prices a fit by what it runs: a solve, a solve with each view solved alone
+    (the best views), or Adam steps with a render per step."""
+    from dresg_addon.method.bookkeeping import BEST_VIEWS_FIT_COST, PRIOR_COSTS, prior_costs
+    from dresg_addon.method.config import preset
+
+    assert prior_costs(preset("cpu"))["fit"] == PRIOR_COSTS["fit"]
+    assert prior_costs(preset("standard"))["fit"] == pytest.approx(PRIOR_COSTS["fit"] * BEST_VIEWS_FIT_COST)
+    assert prior_costs(preset("standard", solve_best_views=0.0))["fit"] == PRIOR_COSTS["fit"]
+    assert prior_costs(preset("paper"))["fit"] == pytest.approx(0.8 * preset("paper").fit.fit_steps)
