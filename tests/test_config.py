@@ -108,7 +108,7 @@ GONE = {"layer_agreement": 0.0, "robust_power": 2.0, "log_optimum": False}
 # Settings added since, at each preset's value, and at the value that runs what the old code ran.
 ADDED = {
     "standard": {"solve_start": "views", "solve_best_views": 4.0},
-    "preview": {"solve_start": "views", "solve_best_views": 4.0},
+    "preview": {"solve_start": "views", "solve_best_views": 0.0},
     "paper": {"solve_start": "views", "solve_best_views": 0.0},
     "cpu": {"solve_start": "views", "solve_best_views": 0.0},
 }
