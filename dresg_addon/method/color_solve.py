@@ -45,8 +45,8 @@ from ..util.errors import ConfigError, NumericalError
 ARMIJO = 1e-4  # sufficient decrease of the projected line search
 BACKTRACKS = 6  # halvings of the projected step before a round gives up
 COVERAGE_FLOOR = 1e-3  # a pixel's coverage below this counts as this in the view average (no division by 0)
-WEIGHT_FLOOR = 1e-9
-BEST_VIEW_ROUNDS = 3  # a splat with less summed weight over all views is one no view draws
+WEIGHT_FLOOR = 1e-9  # a splat with less summed weight over all views is one no view draws
+BEST_VIEW_ROUNDS = 3  # rounds of each view's own solve in the best views (within 1% of 6 on the bonsai)
 
 
 @dataclass(frozen=True)
@@ -126,8 +126,12 @@ class LinearViews:
         return [m.matvec(torch.ones(m.shape[1], 1)) for m in self.maps]
 
     @cached_property
-    def drawn_weight(self) -> torch.Tensor:  # [N, 1] float64: sum_v sum_p W_v[p, i], how much the views draw a splat
-        return sum(m.rmatvec(c.new_ones(c.shape)).double() for m, c in zip(self.maps, self.coverages))
+    def drawn_weights(self) -> torch.Tensor:  # [V, N, 1] float64: sum_p W_v[p, i], how much view v draws splat i
+        return torch.stack([m.rmatvec(c.new_ones(c.shape)).double() for m, c in zip(self.maps, self.coverages)])
+
+    @cached_property
+    def drawn_weight(self) -> torch.Tensor:  # [N, 1] float64: how much all the views together draw a splat
+        return self.drawn_weights.sum(0)
 
 
 class _Problem:
@@ -338,7 +342,7 @@ def best_view_colors(
     if not (math.isfinite(sharpness) and sharpness > 0.0):
         raise ConfigError(f"colour solver: the best views' sharpness must be finite and > 0 (got {sharpness})")
     alone = single_view_solutions(views, targets, joint, replace(settings, max_rounds=BEST_VIEW_ROUNDS), each_view)
-    drawn = torch.stack([m.rmatvec(c.new_ones(c.shape)).double() for m, c in zip(views.maps, views.coverages)])
+    drawn = views.drawn_weights
     most = drawn.amax(0, keepdim=True)  # [1, N, 1]
     # (d / max d)^p in log space: a faint view's weight underflows to 0, never to NaN
     weights = torch.where(
