@@ -15,7 +15,12 @@ from test_pipeline import TINY, ring_cameras, sphere_scene, textured_style
 from dresg_addon import cli
 from dresg_addon.commands.stylize import config_from_args
 from dresg_addon.method import loop
-from dresg_addon.method.backends import CONTENT_WEIGHT_CAP, sd15_content_weight, synth_content_weight
+from dresg_addon.method.backends import (
+    CONTENT_WEIGHT_CAP,
+    sd15_content_weight,
+    synth_content_weight,
+    synth_light_weight,
+)
 from dresg_addon.method.bookkeeping import RunHooks, RunRecord
 from dresg_addon.method.config import PRESETS, StylizeConfig, preset
 from dresg_addon.method.fitting import ViewRenderer, seen_gaussians, splat_footprint
@@ -86,6 +91,34 @@ def test_the_synth_backend_gets_the_mapped_weight_and_the_stroke_scale(scene_wei
     assert backend.settings.content_sigma == pytest.approx(3.0 * SynthSettings.content_sigma)
     ablated = _proposal_backend(StylizeConfig().with_(scene_weight=scene_weight, use_content_query=False), None)
     assert ablated.settings.content_weight == 0.0
+
+
+def test_paint_scene_sets_how_much_of_the_scenes_light_the_synth_backend_holds():
+    assert synth_light_weight(0.0, 1.0) == 0.0  # all painting: its marks set the light too
+    assert synth_light_weight(0.25, 1.0) == pytest.approx(0.5)
+    assert synth_light_weight(0.5, 1.0) == synth_light_weight(1.0, 1.0) == 1.0
+    assert synth_light_weight(0.8, 0.5) == pytest.approx(0.5) and synth_light_weight(1.0, 0.0) == 0.0
+    assert all(config.proposal.scene_light == 0.0 for config in PRESETS.values())  # off: see bench/README.md
+    held = _proposal_backend(preset("standard", scene_light=1.0), None)
+    assert held.settings.light_weight == 1.0 and _proposal_backend(preset("standard"), None).settings.light_weight == 0
+    for changes in ({"scene_weight": 0.2}, {"scene_light": 0.5, "scene_weight": 0.9}):
+        backend = _proposal_backend(preset("standard", **{"scene_light": 1.0, **changes}), None)
+        expected = synth_light_weight(**{"scene_weight": 0.5, "scene_light": 1.0, **changes})
+        assert backend.settings.light_weight == pytest.approx(expected)
+    ablated = _proposal_backend(preset("standard", scene_light=1.0, use_content_query=False), None)
+    assert ablated.settings.light_weight == 0.0
+
+
+@pytest.mark.parametrize("value", [-0.1, 1.5, math.nan, math.inf])
+def test_scene_light_out_of_range_is_one_line_config_error(value):
+    with pytest.raises(ConfigError, match=r"scene_light must be in \[0, 1\]") as error:
+        StylizeConfig().with_(scene_light=value)
+    assert "\n" not in str(error.value)
+
+
+def test_a_checkpoint_written_before_the_light_hold_keeps_its_run_id():
+    assert "scene_light" not in StylizeConfig().run_values()
+    assert preset("standard", scene_light=1.0).run_values()["scene_light"] == 1.0
 
 
 # --- Stroke Size: the painting the backend and the style distance see ------------------------------------

@@ -7,6 +7,7 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from dresg_addon.method.proposal.synth import (
     COVERED,
@@ -19,6 +20,7 @@ from dresg_addon.method.proposal.synth import (
     extract_patches,
     fill_uncovered,
     fuse_content,
+    hold_light,
     irls_weights,
     low_pass,
     nearest_patches,
@@ -445,8 +447,62 @@ def test_fuse_content_takes_the_coarse_bands_only():
     torch.testing.assert_close(fine[inner], own[inner], atol=4e-3, rtol=0)
 
 
+def test_hold_light_takes_the_contents_coarse_light_and_leaves_hue_and_fine_bands_to_the_synthesis():
+    g = torch.Generator().manual_seed(16)
+    y, x = torch.meshgrid(torch.arange(48, dtype=F64), torch.arange(64, dtype=F64), indexing="ij")
+    light = 0.25 + 0.5 * (x / 63.0)  # the scene's shading: dark to light
+    checker = 0.2 * (((y // 1) + (x // 1)) % 2 * 2 - 1)  # the capture's texture, finer than sigma
+    content = (light + checker)[None].expand(3, -1, -1)
+    marks = 0.08 * torch.rand(1, 48, 64, generator=g, dtype=F64)  # the painting's fine marks
+    synthesis = torch.tensor([0.6, 0.4, 0.3], dtype=F64)[:, None, None] + marks  # one colour, no shading
+    sigma = 3.0
+    out = hold_light(synthesis, low_pass(content, sigma), 1.0, sigma)
+    luma = torch.tensor([0.2126, 0.7152, 0.0722], dtype=F64)[:, None, None]
+    inner = (slice(None), slice(10, -10), slice(10, -10))
+    # The light arrives, the checker does not, and the shift is grey: hue and the marks stay the synthesis's.
+    coarse = low_pass((out * luma).sum(0, keepdim=True), sigma)[inner]
+    assert float((coarse - low_pass(light[None], sigma)[inner]).abs().max()) < 0.01
+    shift = out - synthesis
+    torch.testing.assert_close(shift[0], shift[1]) and torch.testing.assert_close(shift[1], shift[2])
+    fine = (out - low_pass(out, sigma))[inner]
+    torch.testing.assert_close(fine, (synthesis - low_pass(synthesis, sigma))[inner], atol=4e-3, rtol=0)
+    assert abs(float(torch.corrcoef(torch.stack([fine[1].flatten(), checker[10:-10, 10:-10].flatten()]))[0, 1])) < 0.05
+    torch.testing.assert_close(hold_light(synthesis, low_pass(content, sigma), 0.0, sigma), synthesis)
+    half = hold_light(synthesis, low_pass(content, sigma), 0.5, sigma)
+    torch.testing.assert_close(half - synthesis, 0.5 * shift)
+
+
+def test_hold_light_on_extreme_images_stays_in_range():
+    black, white = torch.zeros(3, 16, 20), torch.ones(3, 16, 20)
+    for image, content in ((black, white), (white, black), (black, black)):
+        for sigma in (0.0, 3.0, 100.0):
+            out = hold_light(image, low_pass(content, sigma), 1.0, sigma)
+            assert bool(torch.isfinite(out).all()) and float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+    torch.testing.assert_close(hold_light(black, white, 1.0, 0.0), white)
+
+
+def test_a_proposal_holds_the_scenes_shading_with_light_weight():
+    """A shaded content under a painting of light and dark blocks, in a noisy coarse pass (where the synthesis
+    invents marks): the proposal's coarse light keeps to the scene's shading, recoloured, when the light is held."""
+    y, x = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    content = ((0.15 + 0.7 * x / (W - 1)) * torch.tensor([0.9, 0.8, 0.7])[:, None, None]).contiguous()
+    g = torch.Generator().manual_seed(17)
+    blocks = F.interpolate(torch.rand(1, 1, 8, 10, generator=g), size=(64, 80), mode="nearest")[0]
+    tone = torch.tensor([0.3, 0.5, 0.6])[:, None, None] * (0.4 + 1.2 * blocks)
+    painting = (tone + 0.05 * torch.rand(3, 64, 80, generator=g)).clamp(0, 1)
+    shading = low_pass(to_style_colors(content, painting, None, True).mean(0, keepdim=True), 4.0)[0, 8:-8, 8:-8]
+
+    def off(image):  # RMS of the image's blurred luminance from the recoloured shading's
+        return float((low_pass(image.mean(0, keepdim=True), 4.0)[0, 8:-8, 8:-8] - shading).pow(2).mean().sqrt())
+
+    held, _ = SynthBackend(content_weight=0.3, light_weight=1.0).propose(content, (951,), painting, content)
+    loose, _ = SynthBackend(content_weight=0.3).propose(content, (951,), painting, content)
+    assert bool(torch.isfinite(held).all()) and off(held) < 0.6 * off(loose)
+
+
+@pytest.mark.parametrize("light_weight", [0.0, 1.0])
 @pytest.mark.parametrize("timestep", [1, 951])  # a full-resolution pass, a coarse one
-def test_a_fine_checker_in_the_content_does_not_reach_a_proposal_of_a_smooth_painting(timestep):
+def test_a_fine_checker_in_the_content_does_not_reach_a_proposal_of_a_smooth_painting(timestep, light_weight):
     y, x = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
     checker = ((y // 2 + x // 2) % 2).float()  # 2-pixel squares: the capture's texture, finer than a stroke
     content = (0.3 + 0.4 * checker).expand(3, -1, -1).contiguous()
@@ -457,7 +513,8 @@ def test_a_fine_checker_in_the_content_does_not_reach_a_proposal_of_a_smooth_pai
         fine = [(im - low_pass(im, 2.0))[1, 8:-8, 8:-8].flatten() for im in (image, content)]
         return float(torch.corrcoef(torch.stack(fine))[0, 1])
 
-    out, _ = SynthBackend(content_weight=4.0, content_sigma=2.0).propose(content, (timestep,), painting, content)
+    backend = SynthBackend(content_weight=4.0, content_sigma=2.0, light_weight=light_weight)
+    out, _ = backend.propose(content, (timestep,), painting, content)
     assert bool(torch.isfinite(out).all()) and abs(checker_in(out)) < 0.1
     every_band, _ = SynthBackend(content_weight=4.0, content_sigma=0.0).propose(content, (timestep,), painting, content)
     assert checker_in(every_band) > 0.5  # Elad and Milanfar's fusion of every band keeps it
@@ -527,6 +584,9 @@ def test_settings_are_checked():
         {"content_weight": -1.0},
         {"library_size": 0},
         {"library_size": 1},
+        {"light_weight": -0.1},
+        {"light_weight": 1.5},
+        {"light_weight": float("nan")},
     ):
         with pytest.raises(ConfigError):
             SynthBackend(**bad)
@@ -623,10 +683,11 @@ STIFF = {
 }
 
 
+@pytest.mark.parametrize("light_weight", [0.0, 1.0])
 @pytest.mark.parametrize("case", list(STIFF))
-def test_propose_on_stiff_inputs(case):
+def test_propose_on_stiff_inputs(case, light_weight):
     state, style, content, coverage = STIFF[case]()
-    out, energies = SynthBackend().propose(state, TIMESTEPS, style, content, coverage)
+    out, energies = SynthBackend(light_weight=light_weight).propose(state, TIMESTEPS, style, content, coverage)
     assert out.shape == (3, H, W)
     assert bool(torch.isfinite(out).all())
     assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0

@@ -49,8 +49,15 @@ KNOBS = (
         "--paint-scene",
         "scene_weight",
         float,
-        "Paint <-> Scene in [0, 1]: how much of the scene's forms the painting may override "
+        "Paint <-> Scene in [0, 1]: how much of the scene's forms and light the painting may override "
         "(0 the painting's, 1 the scene's)",
+    ),
+    (
+        "--scene-light",
+        "scene_light",
+        float,
+        "synth: how much of the scene's light above the stroke scale the proposals hold, in [0, 1], as a share "
+        "of what Paint <-> Scene asks (0: the content fusion alone)",
     ),
     ("--latent-lr", "latent_lr", float, "Adam learning rate of the latent updates"),
     (

@@ -24,6 +24,7 @@ class BackendSettings:
     seed: int
     stroke_size: float  # the painting's scale against the view (Stroke Size)
     scene_weight: float  # Paint <-> Scene in [0, 1]; each backend maps it to its own content weight w_c
+    scene_light: float  # the share of Paint <-> Scene's pull the synth backend gives the scene's light
     use_content_query: bool
     use_style_keys: bool
     use_style_values: bool
@@ -87,6 +88,12 @@ def synth_content_weight(scene_weight: float) -> float:
     return min(scene_weight / (1.0 - scene_weight), CONTENT_WEIGHT_CAP)
 
 
+def synth_light_weight(scene_weight: float, scene_light: float) -> float:
+    """The synth backend's light weight (``SynthSettings.light_weight``): ``scene_light`` x min(1, 2 x Paint <->
+    Scene), so the presets' 0.5 holds the scene's light fully and 0 leaves it, with the forms, to the painting."""
+    return scene_light * min(1.0, 2.0 * scene_weight)
+
+
 def synth_stroke_sigma(stroke_size: float) -> float:
     """The synth backend's stroke scale in pixels of the proposal size: its content sigma x Stroke Size (the
     scene's forms act above it, the painting's texture below it)."""
@@ -95,11 +102,14 @@ def synth_stroke_sigma(stroke_size: float) -> float:
     return SynthSettings.content_sigma * stroke_size
 
 
-def _build_synth(seed, stroke_size, scene_weight, use_content_query):
+def _build_synth(seed, stroke_size, scene_weight, scene_light, use_content_query):
     from .proposal.synth import SynthBackend
 
     weight = synth_content_weight(scene_weight) if use_content_query else 0.0
-    return SynthBackend(seed=seed, content_weight=weight, content_sigma=synth_stroke_sigma(stroke_size))
+    light = synth_light_weight(scene_weight, scene_light) if use_content_query else 0.0
+    return SynthBackend(
+        seed=seed, content_weight=weight, content_sigma=synth_stroke_sigma(stroke_size), light_weight=light
+    )
 
 
 def _synth_cpu_seconds(views, stages, updates_per_stage, width, height):
@@ -173,7 +183,7 @@ BACKENDS: dict[str, BackendEntry] = {
             name="synth",
             label="Painting Synthesis (no download)",
             description="Pastes the painting's own strokes (example-based synthesis): no weights, runs on the CPU",
-            settings=("seed", "stroke_size", "scene_weight", "use_content_query"),
+            settings=("seed", "stroke_size", "scene_weight", "scene_light", "use_content_query"),
             build=_build_synth,
             cpu_seconds=_synth_cpu_seconds,
         ),

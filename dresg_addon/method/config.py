@@ -87,6 +87,11 @@ class ProposalSettings:
     # comes from the painting. Each backend maps it to its own content weight w_c (backends.synth_content_weight,
     # backends.sd15_content_weight): 0.5 is sd15's paper w_c 0.15 and the synth backend's w_c 1.
     scene_weight: float = 0.5
+    # How much of the scene's light (its luminance above the stroke scale) the synth backend's proposals hold, as a
+    # share of what Paint <-> Scene asks (backends.synth_light_weight); 0: the content fusion alone. Off in every
+    # preset: 1 won the demo scene's quarter scale and shading, but lost on the bonsai and brought Luigi's texture
+    # back (bench/README.md, "The scene's light held").
+    scene_light: float = 0.0
     # How strongly a view keeps to what earlier views proposed (synth); 0: views alone. 16 rather than 4: marks that
     # agree are what the fit keeps (bonsai x Starry Night, preview: the capture's texture kept 0.27 -> 0.22)
     guide_weight: float = 16.0
@@ -102,6 +107,7 @@ class ProposalSettings:
                     f"stroke_size must be in [0.25, 8] (got {self.stroke_size})",
                 ),
                 (0 <= self.scene_weight <= 1, f"scene_weight must be in [0, 1] (got {self.scene_weight})"),
+                (0 <= self.scene_light <= 1, f"scene_light must be in [0, 1] (got {self.scene_light})"),
                 (self.guide_weight >= 0 and math.isfinite(self.guide_weight), "guide_weight must be >= 0"),
             ],
         )
@@ -307,7 +313,7 @@ FLAT_NAMES["seed"] = (None, "seed")
 RETIRED = {"layer_agreement": 0.0, "robust_power": 2.0, "log_optimum": False}
 # Settings added later, at the value that runs what earlier versions ran: a run id leaves them out at that value,
 # so checkpoints written before they came still resume where the run is the same.
-INTRODUCED = {"solve_start": "colors", "solve_best_views": 0.0}
+INTRODUCED = {"solve_start": "colors", "solve_best_views": 0.0, "scene_light": 0.0}
 
 
 def setting_path(name: str) -> tuple[str | None, str]:

@@ -167,6 +167,7 @@ def _proposal_backend(config: StylizeConfig, device):
         seed=config.seed,
         stroke_size=proposal.stroke_size,
         scene_weight=proposal.scene_weight,
+        scene_light=proposal.scene_light,
         use_content_query=ablation.use_content_query,
         use_style_keys=ablation.use_style_keys,
         use_style_values=ablation.use_style_values,
