@@ -52,10 +52,11 @@ def test_scene_weight_in_range_is_accepted(value):
     assert StylizeConfig().with_(scene_weight=value).proposal.scene_weight == value
 
 
-@pytest.mark.parametrize("value", [-0.1, 1.01, math.nan, math.inf])
-def test_scene_weight_out_of_range_is_one_line_config_error(value):
-    with pytest.raises(ConfigError, match=r"scene_weight must be in \[0, 1\]") as error:
-        StylizeConfig().with_(scene_weight=value)
+@pytest.mark.parametrize("name", ["scene_weight", "scene_light"])
+@pytest.mark.parametrize("value", [-0.1, 1.01, 1.5, math.nan, math.inf])
+def test_scene_weight_and_light_out_of_range_are_one_line_config_errors(name, value):
+    with pytest.raises(ConfigError, match=rf"{name} must be in \[0, 1\]") as error:
+        StylizeConfig().with_(**{name: value})
     assert "\n" not in str(error.value)
 
 
@@ -107,13 +108,6 @@ def test_paint_scene_sets_how_much_of_the_scenes_light_the_synth_backend_holds()
         assert backend.settings.light_weight == pytest.approx(expected)
     ablated = _proposal_backend(preset("standard", scene_light=1.0, use_content_query=False), None)
     assert ablated.settings.light_weight == 0.0
-
-
-@pytest.mark.parametrize("value", [-0.1, 1.5, math.nan, math.inf])
-def test_scene_light_out_of_range_is_one_line_config_error(value):
-    with pytest.raises(ConfigError, match=r"scene_light must be in \[0, 1\]") as error:
-        StylizeConfig().with_(scene_light=value)
-    assert "\n" not in str(error.value)
 
 
 def test_a_checkpoint_written_before_the_light_hold_keeps_its_run_id():

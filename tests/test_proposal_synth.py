@@ -463,7 +463,8 @@ def test_hold_light_takes_the_contents_coarse_light_and_leaves_hue_and_fine_band
     coarse = low_pass((out * luma).sum(0, keepdim=True), sigma)[inner]
     assert float((coarse - low_pass(light[None], sigma)[inner]).abs().max()) < 0.01
     shift = out - synthesis
-    torch.testing.assert_close(shift[0], shift[1]) and torch.testing.assert_close(shift[1], shift[2])
+    torch.testing.assert_close(shift[0], shift[1])
+    torch.testing.assert_close(shift[1], shift[2])
     fine = (out - low_pass(out, sigma))[inner]
     torch.testing.assert_close(fine, (synthesis - low_pass(synthesis, sigma))[inner], atol=4e-3, rtol=0)
     assert abs(float(torch.corrcoef(torch.stack([fine[1].flatten(), checker[10:-10, 10:-10].flatten()]))[0, 1])) < 0.05
