@@ -366,10 +366,20 @@ def verdicts(results: dict, rows: list[str], quick: bool) -> list[str]:
     return lines
 
 
-def report_from_json(path: str, rows: list[str]) -> int:
-    """Print the per-pair tables and the targets again from a ``--json`` file, without running anything."""
-    flat = json.loads(Path(path).read_text(encoding="utf-8"))
-    results = {tuple(key.split("/", 1)): cases for key, cases in flat.items()}
+def split_rows(text: str) -> list[str]:
+    """The rows of ``--rows``: ';'-separated when any row carries a comma in its settings, else ','-separated."""
+    return [r for r in text.split(";" if ";" in text else ",") if r]
+
+
+def report_from_json(paths: list[str], rows: list[str]) -> int:
+    """Print the per-pair tables and the targets again from ``--json`` files, without running anything.
+
+    Several files (runs split across processes) merge pair by pair; a later file's row replaces an earlier one's.
+    """
+    results: dict[tuple[str, ...], dict] = {}
+    for path in paths:
+        for key, cases in json.loads(Path(path).read_text(encoding="utf-8")).items():
+            results.setdefault(tuple(key.split("/", 1)), {}).update(cases)
     out = []
     for (scene, style), cases in results.items():
         out += [f"### {scene} x {style}", "", *table([(row, cases[row]) for row in rows if row in cases]), ""]
@@ -398,13 +408,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--figures", metavar="DIR", help="write novel-view renders at 2x of every case to DIR")
     parser.add_argument("--figure-views", default="0", help="comma-separated novel-view indices to write (default 0)")
     parser.add_argument("--threads", type=int, help="torch threads in every case (default: torch's own choice)")
-    parser.add_argument("--from-json", metavar="FILE", help="print the tables of an earlier run's --json again")
+    parser.add_argument(
+        "--from-json",
+        metavar="FILE",
+        nargs="+",
+        help="print the tables of earlier runs' --json files again (several: merged pair by pair)",
+    )
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         return harness.run_worker(args.worker, WORKERS)
     if args.from_json:
-        return report_from_json(args.from_json, [r for r in args.rows.split(",") if r])
+        return report_from_json(args.from_json, split_rows(args.rows))
 
     size = QUICK if args.quick else FULL
     scenes = [s for s in args.scenes.split(",") if s]
@@ -419,7 +434,7 @@ def main(argv: list[str] | None = None) -> int:
     styles = [s for s in styles if s in GENERATED or style_path(s) is not None] or ["demo"]
     if args.quick:
         scenes, styles = scenes[:1] if "demo" not in scenes else ["demo"], styles[:2]
-    rows = [r for r in args.rows.split(";" if ";" in args.rows else ",") if r]
+    rows = split_rows(args.rows)
     unknown_rows = [r for r in rows if r.partition("@")[0] not in ROWS]
     if unknown_rows:
         parser.error(f"unknown row(s): {', '.join(unknown_rows)} (choose from {', '.join(ROWS)})")

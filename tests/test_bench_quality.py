@@ -101,3 +101,21 @@ def test_the_fit_summary_takes_the_last_stage_s_view_disagreement_and_leaves_the
     assert summary["disagreement"] == 1.4 and summary["disagreement_per_stage"] == [1.8, 1.4]
     assert summary["min_closed"] == 0.5 and summary["fit_ratio"] == 2.0
     assert quality.fit_summary([])["disagreement"] is None
+
+
+def test_rows_with_settings_split_on_semicolons_and_runs_merge_pair_by_pair(tmp_path, capsys):
+    assert quality.split_rows("colour-transfer,standard") == ["colour-transfer", "standard"]
+    assert quality.split_rows("colour-transfer;standard@stroke_size=1.5,scene_light=0.5") == [
+        "colour-transfer",
+        "standard@stroke_size=1.5,scene_light=0.5",
+    ]
+    values = {key: 0.5 for key, _, _ in quality.COLUMNS}
+    row = {**values, "texture_kept": 0.2, "shapes": 0.7, "seconds": 1.0, "peak_rss": 1e9}
+    tuned = "standard@stroke_size=1.5,scene_light=0.5"
+    first, second = tmp_path / "a.json", tmp_path / "b.json"
+    quality.write_json(str(first), {("demo", "lines"): {"colour-transfer": {**row, "sw_patches": 0.9}}})
+    quality.write_json(str(second), {("demo", "lines"): {tuned: {**row, "sw_patches": 0.0123}}})
+    assert quality.main(["--from-json", str(first), str(second), "--rows", f"colour-transfer;{tuned}"]) == 0
+    out = capsys.readouterr().out
+    assert "### demo x lines" in out and "### Means over 1 scene x style pairs" in out
+    assert f"| {tuned} | 0.0123" in out and "| colour-transfer | 0.9000" in out
