@@ -6,6 +6,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import torch
 
 from dresg_addon.method.config import (
     FLAT_NAMES,
@@ -156,18 +157,31 @@ def test_each_group_checks_its_own_settings():
     assert StylizeConfig(ablation=AblationSettings(feedback=False)).value("feedback") is False
 
 
-def test_a_checkpoint_of_the_flat_config_resumes(tmp_path):
+def test_a_checkpoint_of_the_flat_config_resumes(tmp_path, monkeypatch):
     """tests/data/checkpoint_flat_config.pt: stage 1 of test_pipeline's TINY run, written by the flat config's code
-    (commit b39286f). Its run id hashed the flat settings; the grouped config still matches it, run as that code
-    ran (the colour solve from the splats' own colours); run as now (from the views), it starts over."""
+    (commit b39286f). Its run id hashed the flat settings with the run's scene, cameras and images, which are
+    bit-exact only on a CPU like the one that wrote it (numpy's and torch's vector paths differ between CPUs), so
+    the id is rebuilt from the flat settings as that code had them and this machine's images. The grouped config
+    still matches it, run as that code ran (the colour solve from the splats' own colours); run as now (from the
+    views), it starts over."""
     from test_pipeline import TINY, run
 
-    shutil.copy(DATA / "checkpoint_flat_config.pt", tmp_path / "checkpoint.pt")
+    from dresg_addon.method import loop
+
+    inputs = []
+    real_run_id = loop.run_id
+    monkeypatch.setattr(loop, "run_id", lambda values, *rest: inputs.append(rest) or real_run_id(values, *rest))
+    run(config=TINY.with_(**ADDED_AS_BEFORE), checkpoint_dir=tmp_path / "probe")  # sees the run's inputs
+    tiny_flat = {"stages": 2, "updates_per_stage": 2, "fit_steps": 3, "post_steps": 3, "proposal_width": 32}
+    flat = {**OLD_PAPER, **tiny_flat, "proposal_height": 24, "optimize_geometry": False}
+    checkpoint = torch.load(DATA / "checkpoint_flat_config.pt", weights_only=False)
+    checkpoint["run_id"] = real_run_id(flat, *inputs[0])
+    torch.save(checkpoint, tmp_path / "checkpoint.pt")
     messages = []
     result = run(config=TINY.with_(**ADDED_AS_BEFORE), checkpoint_dir=tmp_path, messages=messages.append)
     assert any(m.startswith("resuming after stage 1 from ") for m in messages), messages
     assert [e["stage"] for e in result.log] == [1, 2, "post"]
-    shutil.copy(DATA / "checkpoint_flat_config.pt", tmp_path / "checkpoint.pt")
+    torch.save(checkpoint, tmp_path / "checkpoint.pt")
     messages.clear()
     run(checkpoint_dir=tmp_path, messages=messages.append)
     assert not any(m.startswith("resuming") for m in messages), messages
