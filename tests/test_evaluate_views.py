@@ -47,7 +47,9 @@ def test_evaluate_the_report_and_the_quality_bench_give_identical_numbers(tmp_pa
     command = json.loads((tmp_path / "out.json").read_text())["mean"]
 
     assert [records[0].metrics[key] for key in KEYS] == [bench[key] for key in KEYS]
-    assert [command[key] for key in KEYS] == [bench[key] for key in KEYS]
+    # The command reads the cameras back from cameras.json (camera-to-world, inverted again): a few ulps of float64
+    # that reach the float32 renders on some CPUs and not others.
+    assert [command[key] for key in KEYS] == pytest.approx([bench[key] for key in KEYS], rel=1e-5, abs=1e-7)
     assert 0.0 < bench["ssim"] < 1.0 and bench["sw_patches_quarter"] > 0.0
 
 
