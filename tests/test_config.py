@@ -83,7 +83,7 @@ OLD_PRESETS = {
         **{
             "stages": 12,
             "updates_per_stage": 1,
-            "stroke_size": 2.0,
+            "stroke_size": 1.5,  # 2.0 until the 18-pair run of 2026-11-27 (bench/README.md)
             "post_steps": 0,
             "optimize_geometry": False,
             "max_views": 16,
@@ -95,7 +95,7 @@ OLD_PRESETS = {
         **{
             "stages": 6,
             "updates_per_stage": 1,
-            "stroke_size": 2.0,
+            "stroke_size": 1.5,  # as standard
             "fit_steps": 15,
             "post_steps": 0,
             "optimize_geometry": False,
@@ -108,8 +108,8 @@ OLD_PRESETS = {
 GONE = {"layer_agreement": 0.0, "robust_power": 2.0, "log_optimum": False}
 # Settings added since, at each preset's value, and at the value that runs what the old code ran.
 ADDED = {
-    "standard": {"solve_start": "views", "solve_best_views": 4.0, "scene_light": 0.0},
-    "preview": {"solve_start": "views", "solve_best_views": 0.0, "scene_light": 0.0},
+    "standard": {"solve_start": "views", "solve_best_views": 4.0, "scene_light": 0.5},
+    "preview": {"solve_start": "views", "solve_best_views": 0.0, "scene_light": 0.5},
     "paper": {"solve_start": "views", "solve_best_views": 0.0, "scene_light": 0.0},
     "cpu": {"solve_start": "views", "solve_best_views": 0.0, "scene_light": 0.0},
 }
