@@ -367,8 +367,17 @@ def verdicts(results: dict, rows: list[str], quick: bool) -> list[str]:
 
 
 def split_rows(text: str) -> list[str]:
-    """The rows of ``--rows``: ';'-separated when any row carries a comma in its settings, else ','-separated."""
-    return [r for r in text.split(";" if ";" in text else ",") if r]
+    """The rows of ``--rows``: ';'-separated when there is a ';', else ','-separated, where a piece that is only a
+    setting (``key=value``, no row name) belongs to the row before it: ``standard@stroke_size=2,scene_light=0``."""
+    if ";" in text:
+        return [r for r in text.split(";") if r]
+    rows: list[str] = []
+    for piece in filter(None, text.split(",")):
+        if rows and "@" in rows[-1] and "=" in piece and "@" not in piece:
+            rows[-1] += "," + piece
+        else:
+            rows.append(piece)
+    return rows
 
 
 def report_from_json(paths: list[str], rows: list[str]) -> int:
@@ -399,7 +408,8 @@ def main(argv: list[str] | None = None) -> int:
         "--rows",
         default=",".join(ROWS),
         help="comma-separated rows (default: all); a stylizer row may change settings, e.g. "
-        "'standard;standard@stroke_size=2' (rows separated by ';' when a row has a comma)",
+        "'standard,standard@stroke_size=2,scene_light=0' (a bare key=value belongs to the row before it; "
+        "or separate the rows by ';')",
     )
     parser.add_argument("--markdown", metavar="FILE", help="also write the report to FILE (markdown)")
     parser.add_argument(

@@ -105,6 +105,12 @@ def test_the_fit_summary_takes_the_last_stage_s_view_disagreement_and_leaves_the
 
 def test_rows_with_settings_split_on_semicolons_and_runs_merge_pair_by_pair(tmp_path, capsys):
     assert quality.split_rows("colour-transfer,standard") == ["colour-transfer", "standard"]
+    assert quality.split_rows("standard@stroke_size=2,scene_light=0") == ["standard@stroke_size=2,scene_light=0"]
+    assert quality.split_rows("unstylized,standard@seed=1,seed=2,preview") == [
+        "unstylized",
+        "standard@seed=1,seed=2",
+        "preview",
+    ]
     assert quality.split_rows("colour-transfer;standard@stroke_size=1.5,scene_light=0.5") == [
         "colour-transfer",
         "standard@stroke_size=1.5,scene_light=0.5",
