@@ -28,6 +28,7 @@ CONFIG_FIELDS = (
     "proposal_height",
     "stroke_size",
     "scene_weight",
+    "scene_light",
     "schedule",
     "optimize_geometry",
     "max_views",
@@ -46,6 +47,7 @@ SCHEDULE_LABELS = {
     "triangle": ("Triangle", "Like Balanced, rising and falling linearly over the stages"),
     "timestep-cosine": ("Cosine", "Like Balanced, following the stage number instead of the noise level"),
 }
+
 
 def _default(name: str):
     return PRESETS[DEFAULT_PRESET].value(name)
@@ -150,6 +152,16 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         max=1.0,
         subtype="FACTOR",
         default=_default("scene_weight"),
+    )
+    scene_light: FloatProperty(
+        name="Scene Light",
+        description="How much of the scene's light and shading stays under the painted marks, as a share of what "
+        "Paint <-> Scene keeps: 0 lets the marks set the light too. Keeps large patterns of light (a "
+        "checkerboard floor, a shaded sphere); on a dark capture less of it keeps more of the forms",
+        min=0.0,
+        max=1.0,
+        subtype="FACTOR",
+        default=_default("scene_light"),
     )
     schedule: EnumProperty(
         name="Schedule",

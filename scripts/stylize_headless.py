@@ -30,6 +30,7 @@ OVERRIDES = {  # command-line option -> panel setting
     "height": "proposal_height",
     "stroke_size": "stroke_size",
     "paint_scene": "scene_weight",
+    "scene_light": "scene_light",
     "schedule": "schedule",
     "geometry": "optimize_geometry",
     "max_views": "max_views",
@@ -102,6 +103,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         type=float,
         help="Paint <-> Scene in [0, 1]: how much of the scene's forms the painting may override "
         "(0 the painting's, 1 the scene's)",
+    )
+    parser.add_argument(
+        "--scene-light",
+        type=float,
+        help="how much of the scene's light above the stroke scale the marks keep, in [0, 1], as a share of what "
+        "Paint <-> Scene asks",
     )
     parser.add_argument("--schedule")
     parser.add_argument("--geometry", action=argparse.BooleanOptionalAction, help="optimise geometry offsets")

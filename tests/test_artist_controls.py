@@ -107,7 +107,9 @@ def test_paint_scene_sets_how_much_of_the_scenes_light_the_synth_backend_holds()
         "cpu": 0.0,
     }
     held = _proposal_backend(preset("standard", scene_light=1.0), None)
-    assert held.settings.light_weight == 1.0 and _proposal_backend(preset("standard"), None).settings.light_weight == 0.5
+    assert (
+        held.settings.light_weight == 1.0 and _proposal_backend(preset("standard"), None).settings.light_weight == 0.5
+    )
     assert _proposal_backend(preset("standard", scene_light=0.0), None).settings.light_weight == 0.0
     for changes in ({"scene_weight": 0.2}, {"scene_light": 0.5, "scene_weight": 0.9}):
         backend = _proposal_backend(preset("standard", **{"scene_light": 1.0, **changes}), None)
@@ -202,8 +204,10 @@ def test_the_headless_script_takes_both_flags():
 
     args = stylize_headless.parse_args(
         ["--ply", "a.ply", "--style", "s.png", "--out", "o.ply", "--stroke-size", "3", "--paint-scene", "0.2"]
+        + ["--scene-light", "0.25"]
     )
-    assert (args.stroke_size, args.paint_scene) == (3.0, 0.2)
+    assert (args.stroke_size, args.paint_scene, args.scene_light) == (3.0, 0.2, 0.25)
+    assert stylize_headless.OVERRIDES["scene_light"] == "scene_light"
     assert stylize_headless.OVERRIDES["stroke_size"] == "stroke_size"
     assert stylize_headless.OVERRIDES["paint_scene"] == "scene_weight"
     assert "content_weight" not in stylize_headless.OVERRIDES

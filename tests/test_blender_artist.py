@@ -143,8 +143,9 @@ def test_max_views_applies_to_ticked_cameras(addon, tmp_path):
 
 def test_stroke_size_and_paint_scene_reach_the_run(addon, tmp_path):
     settings_rna = bpy.types.Scene.bl_rna.properties["dresg"].fixed_type.properties
-    stroke, weight = settings_rna["stroke_size"], settings_rna["scene_weight"]
-    assert (stroke.name, weight.name) == ("Stroke Size", "Paint <-> Scene")
+    stroke, weight, light = settings_rna["stroke_size"], settings_rna["scene_weight"], settings_rna["scene_light"]
+    assert (stroke.name, weight.name, light.name) == ("Stroke Size", "Paint <-> Scene", "Scene Light")
+    assert (light.hard_min, light.hard_max, light.subtype) == (0.0, 1.0, "FACTOR")
     assert (stroke.soft_min, stroke.soft_max, stroke.hard_min, stroke.hard_max) == (0.5, 4.0, 0.25, 8.0)
     assert (weight.hard_min, weight.hard_max, weight.subtype) == (0.0, 1.0, "FACTOR")
     assert "content_weight" not in settings_rna
@@ -152,20 +153,23 @@ def test_stroke_size_and_paint_scene_reach_the_run(addon, tmp_path):
     settings = bpy.context.scene.dresg
     assert settings.stroke_size == config.PRESETS[config.DEFAULT_PRESET].proposal.stroke_size
     assert settings.scene_weight == pytest.approx(config.PRESETS[config.DEFAULT_PRESET].proposal.scene_weight)
+    assert settings.scene_light == pytest.approx(config.PRESETS[config.DEFAULT_PRESET].proposal.scene_light)
     _import(tmp_path, _scene())
     from dresg_addon.util.imageio import write_image
 
     write_image(tmp_path / "style.png", np.full((8, 8, 3), 0.5, np.float32))
     settings.style_path = str(tmp_path / "style.png")
     bpy.ops.dresg.add_orbit_cameras(count=2)
-    settings.stroke_size, settings.scene_weight = 2.5, 0.8
+    settings.stroke_size, settings.scene_weight, settings.scene_light = 2.5, 0.8, 0.0
     run, _ = addon.operators.stylize.prepare_job(bpy.context)
-    assert (run.config.proposal.stroke_size, run.config.proposal.scene_weight) == pytest.approx((2.5, 0.8))
+    proposal = run.config.proposal
+    assert (proposal.stroke_size, proposal.scene_weight, proposal.scene_light) == pytest.approx((2.5, 0.8, 0.0))
     settings.preset = "preview"  # a preset brings its own values back
     assert settings.scene_weight == pytest.approx(config.PRESETS["preview"].proposal.scene_weight)
     assert settings.stroke_size == config.PRESETS["preview"].proposal.stroke_size
+    assert settings.scene_light == pytest.approx(config.PRESETS["preview"].proposal.scene_light)
     panel = [args[1] for name, args, kw in _drawn(addon.ui.panels.DRESG_PT_style) if name == "prop"]
-    assert panel.index("stroke_size") < panel.index("scene_weight") < panel.index("preset")
+    assert panel.index("stroke_size") < panel.index("scene_weight") < panel.index("scene_light") < panel.index("preset")
 
 
 def _quick_selection_scene(tmp_path):
