@@ -41,6 +41,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from ..method.color_transfer import luminance
 from ..method.losses import _blur, gaussian_window, ssim_map
 from ..method.style_distance import (
     ALPHA_THRESHOLD,
@@ -57,7 +58,6 @@ from ..util.machine import peak_rss_mb
 
 GRADIENT_FLOOR = 1e-3  # the gradient magnitude (per pixel, [0, 1] images) below which an image is flat
 TEXTURE_FLOOR = 1e-4  # the RMS luminance high-pass ([0, 1] images) at or below which an image has no texture
-LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709
 
 # The style distances are the method's own (it stops its stages on them); they are metrics here too.
 __all__ = [
@@ -138,12 +138,6 @@ def ssim_per_image(
         smap = ssim_map(torch.where(keep, ab, 0.0), torch.where(keep, bb, 0.0))
         out = torch.where(keep, smap, 0.0).flatten(1).sum(1) / (3 * covered.flatten(1).sum(1)).to(smap.dtype)
     return out if a.ndim == 4 else out[0]
-
-
-def luminance(image: torch.Tensor) -> torch.Tensor:  # [B, 3, H, W] -> [B, 1, H, W]
-    """Rec. 709 luminance 0.2126 R + 0.7152 G + 0.0722 B (:data:`LUMINANCE`) of each image."""
-    weights = torch.tensor(LUMINANCE, dtype=image.dtype, device=image.device).view(1, 3, 1, 1)
-    return (image * weights).sum(1, keepdim=True)
 
 
 def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:  # [B, C, H, W] -> [B, C, H, W]

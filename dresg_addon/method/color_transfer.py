@@ -17,6 +17,7 @@ import torch
 from ..scene.gaussians import SH_C0, GaussianScene
 from ..util.errors import CameraError, ImageError, NumericalError
 
+LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709
 EIGEN_FLOOR = 1e-6  # variance floor (std 1e-3, a quarter of an 8-bit level) for the inverse root
 COVERAGE_LOW, COVERAGE_HIGH = 0.25, 0.75  # alpha range over which a pixel goes from kept to recoloured
 
@@ -36,6 +37,12 @@ class ColorTransform:
     def apply_to_images(self, images: torch.Tensor) -> torch.Tensor:  # [..., 3, H, W] -> same; not clamped
         """The map on images with RGB in axis -3."""
         return self.apply_to_colors(images.movedim(-3, -1)).movedim(-1, -3)
+
+
+def luminance(image: torch.Tensor) -> torch.Tensor:  # [B, 3, H, W] -> [B, 1, H, W]
+    """Rec. 709 luminance 0.2126 R + 0.7152 G + 0.0722 B (:data:`LUMINANCE`) of each image."""
+    weights = torch.tensor(LUMINANCE, dtype=image.dtype, device=image.device).view(1, 3, 1, 1)
+    return (image * weights).sum(1, keepdim=True)
 
 
 def coverage_weight(alpha: torch.Tensor) -> torch.Tensor:  # [..., H, W] -> same

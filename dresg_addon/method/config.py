@@ -88,9 +88,10 @@ class ProposalSettings:
     # backends.sd15_content_weight): 0.5 is sd15's paper w_c 0.15 and the synth backend's w_c 1.
     scene_weight: float = 0.5
     # How much of the scene's light (its luminance above the stroke scale) the synth backend's proposals hold, as a
-    # share of what Paint <-> Scene asks (backends.synth_light_weight); 0: the content fusion alone. Off in every
-    # preset: 1 came 9-31% closer on the demo scene at a quarter of the size, but lowered the bonsai's shapes and
-    # brought Luigi's texture back (bench/README.md, "Stroke Size 1.5, and the scene's light held").
+    # share of what Paint <-> Scene asks (backends.synth_light_weight); 0: the content fusion alone, as `paper` and
+    # `cpu` run; 0.5 in `standard` and `preview` (see PRESETS). 1 came 9-31% closer on the demo scene at a quarter
+    # of the size, but lowered the bonsai's shapes and brought Luigi's texture back (bench/README.md, "Stroke Size
+    # 1.5, and the scene's light held").
     scene_light: float = 0.0
     # How strongly a view keeps to what earlier views proposed (synth); 0: views alone. 16 rather than 4: marks that
     # agree are what the fit keeps (bonsai x Starry Night, preview: the capture's texture kept 0.27 -> 0.22)

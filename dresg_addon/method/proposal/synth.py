@@ -97,6 +97,7 @@ from ..color_transfer import (
     covariance_color_transform,
     coverage_weight,
     fit_color_map,
+    luminance,
     match_color_histograms,
 )
 from ..schedule import alphas_cumprod
@@ -107,7 +108,6 @@ LIBRARY_CHUNK_VALUES = 1 << 22  # patch values gathered at once while projecting
 COVERED = 0.5  # coverage above which a pixel counts in colour statistics and patch selection
 EDGE_SIGMA = 1.5  # blur of the content's gradient magnitude, in pixels of the working level
 IRLS_EPS = 1e-6  # keeps ||R X - z||^(r - 2) finite for a patch matched exactly
-LUMA = (0.2126, 0.7152, 0.0722)  # Rec. 709
 
 
 @dataclass(frozen=True)
@@ -467,8 +467,7 @@ def hold_light(
     whose only advantage there is the scene's light (bench/README.md, "Stroke Size 1.5, and the scene's light
     held").
     """
-    luma = torch.tensor(LUMA, dtype=image.dtype, device=image.device)[:, None, None]
-    shift = ((content_low - low_pass(image, sigma)) * luma).sum(0, keepdim=True)
+    shift = luminance((content_low - low_pass(image, sigma))[None])[0]  # linear: L(a) - L(b) = L(a - b)
     return (image + weight * shift).clamp(0.0, 1.0)
 
 
