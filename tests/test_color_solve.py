@@ -330,3 +330,32 @@ def test_best_views_leave_splats_no_view_draws_alone_and_refuse_a_sharpness_that
             best_view_colors(views, targets, joint, settings, sharpness)
     with pytest.raises(ConfigError, match="best_views"):
         ColorSolveSettings(best_views=-1.0)
+
+
+def test_fit_split_by_splat_width_separates_disagreeing_views_from_what_no_view_can_draw(small):
+    """Agreeing targets: no band loses anything, jointly or alone. Each view with its own marks: every band's joint
+    error is above the view's own. A mark finer than the splats: the view alone cannot draw it either."""
+    from dresg_addon.method.color_solve import fit_split
+
+    scene, views = small
+    settings = ColorSolveSettings(tolerance=1e-6, max_rounds=30, cg_iterations=16)
+    widths = [torch.linspace(0.5, 12.0, m.shape[0]) for m in views.maps]  # every band has pixels
+    truth = torch.from_numpy(np.random.default_rng(8).uniform(0.2, 0.8, (80, 3)).astype(np.float32))
+    rows = fit_split(views, views.images(truth), widths, [0, 2], (3.0, 8.0), settings)
+    assert {row.band for row in rows} == {"< 3 px", "3-8 px", ">= 8 px"} and {row.view for row in rows} == {0, 2}
+    for v in (0, 2):
+        assert sum(row.share for row in rows if row.view == v) == pytest.approx(1.0)
+    assert max(max(row.joint_rmse, row.single_rmse) for row in rows) < 0.02
+    rng = np.random.default_rng(9)
+    painted = [views.images(torch.from_numpy(rng.uniform(0, 1, (80, 3)).astype(np.float32)))[v] for v in range(3)]
+    rows = fit_split(views, painted, widths, [1], (3.0, 8.0), settings)
+    assert all(row.joint_rmse > 2.0 * row.single_rmse and row.single_rmse < 0.02 for row in rows)
+    checker = [views.images(truth)[v].clone() for v in range(3)]
+    for image in checker:
+        image[::2] = 1.0 - image[::2]  # every other pixel inverted: finer than a splat
+    alone = fit_split(views, checker, widths, [0], (), settings)
+    assert [row.band for row in alone] == ["all"] and alone[0].single_rmse > 0.1
+    with pytest.raises(ValueError, match="increasing"):
+        fit_split(views, checker, widths, [0], (8.0, 3.0))
+    with pytest.raises(ValueError, match="do not index"):
+        fit_split(views, checker, widths, [3])

@@ -927,3 +927,34 @@ def test_a_masked_run_stylizes_the_selection_and_returns_every_other_splat_bit_i
     ):
         with pytest.raises(ConfigError, match=message):
             run(scene, config=config, mask=bad)
+
+
+def test_pixel_widths_are_the_splats_screen_sigma_where_drawn_and_zero_elsewhere():
+    """One round splat of world sigma s at depth z: every pixel it draws reports f s / z (plus the low-pass), and the
+    median over covered pixels is splat_footprint's value."""
+    import math
+
+    from dresg_addon.method.fitting import ViewRenderer, pixel_widths, seen_gaussians, splat_footprint
+    from dresg_addon.raster import RasterSettings
+    from dresg_addon.raster.projection import LOW_PASS
+    from dresg_addon.scene.camera import Camera
+    from dresg_addon.scene.gaussians import GaussianScene
+
+    sigma, depth, focal = 0.1, 4.0, 40.0
+    scene = GaussianScene(
+        means=np.array([[0.0, 0.0, depth]], np.float32),
+        log_scales=np.full((1, 3), math.log(sigma), np.float32),
+        quats=np.array([[1.0, 0.0, 0.0, 0.0]], np.float32),
+        opacity_logits=np.array([4.0], np.float32),
+        sh_dc=np.zeros((1, 3), np.float32),
+    )
+    camera = Camera(32, 24, focal, focal, 16.0, 12.0, np.eye(4))
+    seen, fast = seen_gaussians(scene, [camera], RasterSettings(), False)
+    renderer = ViewRenderer(scene, [camera], seen, RasterSettings(), False, fast)
+    ((width, weight),) = pixel_widths(renderer)
+    expected = math.sqrt((focal * sigma / depth) ** 2 + LOW_PASS)
+    drawn = weight > 0
+    assert bool(drawn.any()) and not bool(drawn.all())
+    assert torch.allclose(width[drawn], torch.full_like(width[drawn], expected), rtol=1e-4)
+    assert bool((width[~drawn] == 0).all())
+    assert splat_footprint(renderer) == pytest.approx(expected, rel=1e-4)

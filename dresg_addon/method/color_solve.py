@@ -321,6 +321,62 @@ def view_disagreement(
     return ViewDisagreement(joint_rmse, single_rmse)
 
 
+@dataclass(frozen=True)
+class SplitRow:
+    """One view's pixels on splats of one width band: how well the joint fit and the view's own fit carry them."""
+
+    view: int
+    band: str  # e.g. "< 3 px", "3-8 px", ">= 8 px"
+    share: float  # of the view's covered pixels
+    joint_rmse: float  # the joint least-squares optimum of all views, against this view's target
+    single_rmse: float  # this view solved alone
+
+
+def fit_split(
+    views: LinearViews,
+    targets: Sequence[torch.Tensor],  # V x [3, H, W] (or [P, 3])
+    widths: Sequence[torch.Tensor],  # V x [P]: each pixel's splat width (``fitting.pixel_widths``)
+    check: Sequence[int],  # the views to report
+    edges: Sequence[float] = (3.0, 8.0),  # band edges in pixels, increasing
+    settings: ColorSolveSettings = ColorSolveSettings(max_rounds=12),
+    covered: float = 0.5,
+) -> list[SplitRow]:
+    """Where a fit loses its targets, by the width of the splats under each pixel: per view in ``check`` and band,
+    the RMSE of the joint bounded least-squares optimum (all views) and of the view solved alone, both unanchored
+    from the views' average (:func:`view_average_colors`), over the view's covered pixels (alpha > ``covered``).
+
+    The view alone fits as well as its splats can, so its error is what the splats cannot draw (wide splats and
+    fine marks); the joint one's excess over it is what the other views ask of the same splats (the targets
+    disagree, or faint layers look different from each angle). A diagnostic (``bench/fit_split.py``).
+    """
+    if list(edges) != sorted(edges) or any(not math.isfinite(e) or e <= 0 for e in edges):
+        raise ValueError(f"fit_split: band edges must be positive and increasing, got {list(edges)}")
+    if any(not 0 <= v < len(views) for v in check):
+        raise ValueError(f"fit_split: views {list(check)} do not index the {len(views)} views")
+    flat = _flat_targets(targets, len(views))
+    plain = replace(settings, anchor=0.0, best_views=0.0)
+    start = view_average_colors(views, flat, torch.full((views.energy.numel(), 3), 0.5))
+    joint = projected_solve(views, flat, start, plain).colors
+    labels = [f"< {edges[0]:g} px"] if edges else ["all"]
+    labels += [f"{lo:g}-{hi:g} px" for lo, hi in zip(edges, edges[1:])] + ([f">= {edges[-1]:g} px"] if edges else [])
+    bounds = [0.0, *edges, math.inf]
+    rows = []
+    for v in check:
+        m, b, target = views.maps[v], views.constants[v], flat[v]
+        alone = projected_solve(LinearViews([m], [b]), [target], start, plain).colors
+        mask = views.coverages[v].reshape(-1) > covered
+        count = int(mask.sum())
+        width = widths[v].reshape(-1)
+        for label, lo, hi in zip(labels, bounds, bounds[1:]):
+            band = mask & (width >= lo) & (width < hi)
+            if not bool(band.any()):
+                continue
+            joint_rmse = _covered_rmse(m.matvec(joint) + b, target, band.float(), 0.5)
+            single_rmse = _covered_rmse(m.matvec(alone) + b, target, band.float(), 0.5)
+            rows.append(SplitRow(v, label, int(band.sum()) / max(count, 1), joint_rmse, single_rmse))
+    return rows
+
+
 def best_view_colors(
     views: LinearViews,
     targets: Sequence[torch.Tensor],  # V x [P, 3]

@@ -9,7 +9,8 @@
 - :class:`MultiViewFit`: one Adam step of the fit loss (Eq. 16) over all views, the colour gradients
   fused by PCGrad (Eqs. 17-20) and geometry gradients averaged, then colours clamped and offsets
   projected into their bounds (geometry on, or ``color_fit="adam"``).
-- :func:`splat_footprint`: how wide the splats drawn in the active views are on screen (for the Stroke Size note).
+- :func:`pixel_widths`, :func:`splat_footprint`: how wide the splats drawn in the active views are on screen (for the
+  Stroke Size note and :func:`~.color_solve.fit_split`).
 - :func:`fit_residual`: how far renders are from their targets (RMSE over covered pixels), for the log.
 - :func:`result_scene`: the input scene with the fitted state written back.
 """
@@ -195,20 +196,20 @@ class ViewRenderer:
         return LinearViews(maps, constants)
 
 
-def splat_footprint(renderer: ViewRenderer, min_alpha: float = 0.5) -> float | None:
-    """The median, over the covered pixels (alpha > ``min_alpha``) of the active views, of the blending-weighted
-    screen-space sigma of the splats drawn there, in pixels at the fit size (the renders' size).
+def pixel_widths(renderer: ViewRenderer) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Per active view, ([P] the blending-weighted screen sigma of the splats drawn at each pixel, in pixels at the
+    fit size; [P] their summed blending weight, the pixel's coverage), P = H x W, from the colour-only path's
+    cached weights (nothing is rendered again). Requires that path (geometry frozen).
 
     A splat's sigma is sqrt of the mean of its 2D covariance's two eigenvalues, the 0.3 px^2 low-pass included
     (:func:`~dresg_addon.raster.projection.projected_mean_variance`): its RMS width, the sigma itself for a round
     splat, and for a needle between its width and its length, as a mark across it or along it is blurred. A pixel's
-    value is sum_i w_i sigma_i / sum_i w_i over its samples (w = T alpha, the colour-only path's cached weights),
-    so nothing is rendered again. None without the colour-only path (geometry on) or without covered pixels.
+    value is sum_i w_i sigma_i / sum_i w_i over its samples (w = T alpha); 0 where nothing is drawn.
     """
     if renderer.fast is None:
-        return None
+        raise ValueError("pixel widths need frozen geometry (the colour-only path)")
     covariances = splat_covariances(renderer.quats, renderer.log_scales)
-    values = []
+    out = []
     with torch.no_grad():
         for view, camera in zip(renderer.fast, renderer.cameras):
             drawn = torch.nonzero(view.seen).squeeze(-1)
@@ -225,8 +226,21 @@ def splat_footprint(renderer: ViewRenderer, min_alpha: float = 0.5) -> float | N
             )
             columns[drawn, 0] = variance.clamp_min(0.0).sqrt()
             blended = view.map.matvec(columns)  # [P, 2]: sum_i w_i sigma_i, sum_i w_i
-            covered = (view.alpha.reshape(-1) > min_alpha) & (blended[:, 1] > 0)
-            values.append(blended[covered, 0] / blended[covered, 1])
+            weight = blended[:, 1]
+            out.append((torch.where(weight > 0, blended[:, 0] / weight.clamp_min(1e-12), 0.0), weight))
+    return out
+
+
+def splat_footprint(renderer: ViewRenderer, min_alpha: float = 0.5) -> float | None:
+    """The median, over the covered pixels (alpha > ``min_alpha``) of the active views, of :func:`pixel_widths`:
+    how wide the splats drawn there are on screen, in pixels at the fit size. None without the colour-only path
+    (geometry on) or without covered pixels."""
+    if renderer.fast is None:
+        return None
+    values = []
+    for view, (width, weight) in zip(renderer.fast, pixel_widths(renderer)):
+        covered = (view.alpha.reshape(-1) > min_alpha) & (weight > 0)
+        values.append(width[covered])
     values = torch.cat(values)
     return float(values.median()) if values.numel() else None
 

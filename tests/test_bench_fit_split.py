@@ -1,0 +1,53 @@
+"""``bench/fit_split.py`` on a tiny scene with images written as ``--save-views`` writes them."""
+
+from __future__ import annotations
+
+import fit_split  # bench/, on pytest's pythonpath
+import numpy as np
+import pytest
+
+from dresg_addon.evaluation.stability import tiny_scene
+from dresg_addon.raster import render_scene
+from dresg_addon.scene.io import write_scene
+from dresg_addon.scene.orbit import orbit_cameras
+from dresg_addon.util.imageio import write_image
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("fit_split")
+    scene = tiny_scene(60)
+    path = folder / "scene.ply"
+    write_scene(scene, path)
+    cameras = orbit_cameras(scene, 4, width=48, height=32)
+    stage = folder / "views" / "stage03"
+    for camera in cameras[:3]:  # the run's active views: three of the four
+        image = render_scene(scene, camera).rgb.numpy()
+        write_image(fit_split.view_file(stage, camera.name, "proposal"), np.ascontiguousarray(image))
+    return path, stage
+
+
+def test_fit_split_reports_each_checked_views_bands_from_the_saved_images(saved, capsys):
+    path, stage = saved
+    args = [str(path), "--orbit", "4", "--width", "48", "--height", "32", "--stage", str(stage), "--check", "0,2"]
+    assert fit_split.main(args) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("3 views from")
+    rows = [line for line in out.splitlines() if line.startswith("| orbit_")]
+    assert {row.split(" | ")[0] for row in rows} == {"| orbit_000", "| orbit_002"}
+    # The images are the scene's own renders: both fits draw them to within 8-bit rounding.
+    for row in rows:
+        joint, alone = (float(cell) for cell in row.strip(" |").split(" | ")[-2:])
+        assert joint < 0.01 and alone < 0.01
+
+
+def test_fit_split_names_the_missing_image_or_size_in_one_line(saved):
+    path, stage = saved
+    with pytest.raises(SystemExit, match=r"no proposal image of camera\(s\) \[3\]"):
+        fit_split.main(
+            [str(path), "--orbit", "4", "--width", "48", "--height", "32", "--stage", str(stage), "--check", "3"]
+        )
+    with pytest.raises(SystemExit, match="pass the run's --width/--height"):
+        fit_split.main([str(path), "--orbit", "4", "--width", "24", "--height", "16", "--stage", str(stage)])
+    with pytest.raises(SystemExit, match="no target image of any"):
+        fit_split.main([str(path), "--orbit", "4", "--stage", str(stage), "--kind", "target"])
