@@ -24,9 +24,10 @@ from dresg_addon.util.errors import DresgError
 
 
 def view_file(stage: Path, name: str, kind: str) -> Path:
-    """The image ``--save-views`` wrote for camera ``name`` (its name made file-safe as the run does)."""
-    safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
-    return stage / f"{safe}_{kind}.png"
+    """The image ``--save-views`` wrote for camera ``name`` in the stage folder ``stage`` (``.../stageNN``)."""
+    from dresg_addon.method.bookkeeping import saved_view_path
+
+    return saved_view_path(stage.parent, int(stage.name.removeprefix("stage") or 0), name, kind)
 
 
 def parse_numbers(text: str, kind, option: str) -> list:
@@ -53,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     from dresg_addon.util.imageio import read_rgb
 
     stage = Path(args.stage)
+    if not (stage.name.startswith("stage") and stage.name.removeprefix("stage").isdigit()):
+        raise SystemExit(f"fit_split: --stage {stage}: expected a stageNN folder that --save-views wrote")
     check = parse_numbers(args.check, int, "--check")
     edges = parse_numbers(args.edges, float, "--edges")
     try:

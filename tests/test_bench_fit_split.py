@@ -49,5 +49,7 @@ def test_fit_split_names_the_missing_image_or_size_in_one_line(saved):
         )
     with pytest.raises(SystemExit, match="pass the run's --width/--height"):
         fit_split.main([str(path), "--orbit", "4", "--width", "24", "--height", "16", "--stage", str(stage)])
+    with pytest.raises(SystemExit, match="expected a stageNN folder"):
+        fit_split.main([str(path), "--orbit", "4", "--stage", str(stage.parent)])
     with pytest.raises(SystemExit, match="no target image of any"):
         fit_split.main([str(path), "--orbit", "4", "--stage", str(stage), "--kind", "target"])

@@ -447,13 +447,19 @@ class RunRecord:
         from ..util.imageio import write_image
 
         for name, kinds in images.items():
-            safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
             for kind, image in kinds.items():
-                path = Path(self.views_dir) / f"stage{stage:02d}" / f"{safe}_{kind}.png"
+                path = saved_view_path(self.views_dir, stage, name, kind)
                 try:
                     write_image(path, np.ascontiguousarray(image))
                 except WriteError as error:
                     raise WriteError(f"{error}, so the run stopped{self.kept_note()}") from None
+
+
+def saved_view_path(views_dir: str | os.PathLike, stage: int, name: str, kind: str) -> Path:
+    """Where ``save_views_dir`` keeps a view's image of a stage: ``stageNN/NAME_KIND.png``, the camera's name made
+    file-safe (``render``, ``proposal``, ``target``, ``residual``)."""
+    safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
+    return Path(views_dir) / f"stage{stage:02d}" / f"{safe}_{kind}.png"
 
 
 def _load_checkpoint(path: Path) -> dict | None:
