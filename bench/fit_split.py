@@ -23,13 +23,6 @@ from dresg_addon.commands._common import add_scene_and_cameras, load_scene_and_c
 from dresg_addon.util.errors import DresgError
 
 
-def view_file(stage: Path, name: str, kind: str) -> Path:
-    """The image ``--save-views`` wrote for camera ``name`` in the stage folder ``stage`` (``.../stageNN``)."""
-    from dresg_addon.method.bookkeeping import saved_view_path
-
-    return saved_view_path(stage.parent, int(stage.name.removeprefix("stage") or 0), name, kind)
-
-
 def parse_numbers(text: str, kind, option: str) -> list:
     try:
         return [kind(part) for part in text.split(",") if part.strip()]
@@ -48,20 +41,24 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
+    from dresg_addon.method.bookkeeping import saved_view_path
     from dresg_addon.method.color_solve import fit_split
     from dresg_addon.method.fitting import SOLVE_MIN_WEIGHT, ViewRenderer, pixel_widths, seen_gaussians
     from dresg_addon.raster import RasterSettings
+    from dresg_addon.scene.camera import view_name
     from dresg_addon.util.imageio import read_rgb
 
     stage = Path(args.stage)
     if not (stage.name.startswith("stage") and stage.name.removeprefix("stage").isdigit()):
         raise SystemExit(f"fit_split: --stage {stage}: expected a stageNN folder that --save-views wrote")
+    stage_number = int(stage.name.removeprefix("stage"))
     check = parse_numbers(args.check, int, "--check")
     edges = parse_numbers(args.edges, float, "--edges")
     try:
         scene, cameras = load_scene_and_cameras(args)
-        names = [camera.name or f"view_{v:03d}" for v, camera in enumerate(cameras)]
-        active = [v for v, name in enumerate(names) if view_file(stage, name, args.kind).is_file()]
+        names = [view_name(camera, v) for v, camera in enumerate(cameras)]
+        files = [saved_view_path(stage.parent, stage_number, name, args.kind) for name in names]
+        active = [v for v, path in enumerate(files) if path.is_file()]
         if not active:
             raise SystemExit(f"fit_split: {stage}: no {args.kind} image of any of the {len(cameras)} cameras")
         missing = [v for v in check if v not in active]
@@ -70,10 +67,10 @@ def main(argv: list[str] | None = None) -> int:
         chosen = [cameras[v] for v in active]
         targets = []
         for v, camera in zip(active, chosen):
-            image = read_rgb(view_file(stage, names[v], args.kind))
+            image = read_rgb(files[v])
             if image.shape[:2] != (camera.height, camera.width):
                 raise SystemExit(
-                    f"fit_split: {view_file(stage, names[v], args.kind)} is {image.shape[1]}x{image.shape[0]}, "
+                    f"fit_split: {files[v]} is {image.shape[1]}x{image.shape[0]}, "
                     f"the camera {camera.width}x{camera.height}: pass the run's --width/--height"
                 )
             targets.append(torch.from_numpy(image).permute(2, 0, 1).float())

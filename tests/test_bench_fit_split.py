@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from dresg_addon.evaluation.stability import tiny_scene
+from dresg_addon.method.bookkeeping import saved_view_path
 from dresg_addon.raster import render_scene
 from dresg_addon.scene.io import write_scene
 from dresg_addon.scene.orbit import orbit_cameras
@@ -20,11 +21,10 @@ def saved(tmp_path_factory):
     path = folder / "scene.ply"
     write_scene(scene, path)
     cameras = orbit_cameras(scene, 4, width=48, height=32)
-    stage = folder / "views" / "stage03"
     for camera in cameras[:3]:  # the run's active views: three of the four
         image = render_scene(scene, camera).rgb.numpy()
-        write_image(fit_split.view_file(stage, camera.name, "proposal"), np.ascontiguousarray(image))
-    return path, stage
+        write_image(saved_view_path(folder / "views", 3, camera.name, "proposal"), np.ascontiguousarray(image))
+    return path, folder / "views" / "stage03"
 
 
 def test_fit_split_reports_each_checked_views_bands_from_the_saved_images(saved, capsys):

@@ -151,6 +151,7 @@ def evaluate(args: argparse.Namespace) -> dict:
     from ..evaluation import metrics
     from ..evaluation.views import base_views, check_camera_sizes, evaluate_views, path_consistency
     from ..raster import RasterSettings
+    from ..scene.camera import view_name
     from ..util.imageio import STYLE_MAX_SIDE, read_rgb, to_tensor
 
     tolerance, threshold = _check_options(args)
@@ -207,7 +208,7 @@ def evaluate(args: argparse.Namespace) -> dict:
 
     per_view = [
         {
-            "name": camera.name or f"view_{i:03d}",
+            "name": view_name(camera, i),
             "width": camera.width,
             "height": camera.height,
             **{key: values[i] for key, values in measured.per_view.items()},

@@ -25,6 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from ..method.config import StylizeConfig, ViewSettings
     from ..method.views import select_active_views
+    from ..scene.camera import view_name
 
     device = parse_device(args.device)
     scene, cameras = load_scene_and_cameras(args)
@@ -38,7 +39,7 @@ def run(args) -> int:
         )
     )
     chosen = select_active_views(scene, cameras, config, progress=args.threads.wrap(None), device=device)
-    names = [c.name or f"view_{i:03d}" for i, c in enumerate(cameras)]
+    names = [view_name(c, i) for i, c in enumerate(cameras)]
     if args.json:
         print(json.dumps({
             "views": [{"index": v, "name": names[v], "coverage_after": c, "own_coverage": chosen.per_view_coverage[v]} for v, c in zip(chosen.indices, chosen.coverage)],

@@ -364,6 +364,7 @@ def fit_split(
     for v in check:
         m, b, target = views.maps[v], views.constants[v], flat[v]
         alone = projected_solve(LinearViews([m], [b]), [target], start, plain).colors
+        joint_image, alone_image = m.matvec(joint) + b, m.matvec(alone) + b
         mask = views.coverages[v].reshape(-1) > covered
         count = int(mask.sum())
         width = widths[v].reshape(-1)
@@ -371,8 +372,8 @@ def fit_split(
             band = mask & (width >= lo) & (width < hi)
             if not bool(band.any()):
                 continue
-            joint_rmse = _covered_rmse(m.matvec(joint) + b, target, band.float(), 0.5)
-            single_rmse = _covered_rmse(m.matvec(alone) + b, target, band.float(), 0.5)
+            joint_rmse = _covered_rmse(joint_image, target, band.float(), 0.5)
+            single_rmse = _covered_rmse(alone_image, target, band.float(), 0.5)
             rows.append(SplitRow(v, label, int(band.sum()) / max(count, 1), joint_rmse, single_rmse))
     return rows
 

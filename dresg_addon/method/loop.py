@@ -31,7 +31,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from ..scene.camera import Camera
+from ..scene.camera import Camera, view_name
 from ..scene.gaussians import GaussianScene, blend_colors
 from ..util.errors import CameraError, ConfigError, NumericalError
 from ..util.machine import peak_rss_mb
@@ -301,7 +301,7 @@ class Stylization:
             self.selection = ActiveViews(list(views), [], [], "given")
         chosen = [cameras[v] for v in self.selection.indices]
         self.cameras = scaled_cameras(chosen, self.config.scene.render_scale)
-        self.names = [cameras[v].name or f"view_{v:03d}" for v in self.selection.indices]
+        self.names = [view_name(cameras[v], v) for v in self.selection.indices]
         hooks.model.set_counts(views=len(self.cameras))
         self.hooks.say(f"active views: {len(self.cameras)} of {len(cameras)} ({self.selection.reason})")
         self.hooks.check_cancel()

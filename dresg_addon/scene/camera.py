@@ -64,6 +64,12 @@ class Camera:
         )
 
 
+def view_name(camera: Camera, index: int) -> str:
+    """The name a view goes by in logs, reports and saved images: the camera's own, else ``view_NNN`` from its
+    index among the cameras given."""
+    return camera.name or f"view_{index:03d}"
+
+
 def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
     """[4, 4] OpenCV world-to-camera matrix of a camera at ``eye`` looking at ``target``.
 
