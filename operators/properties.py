@@ -17,6 +17,7 @@ from ..dresg_addon.method.config import (
     preset_description,
     preset_label,
 )
+from ..dresg_addon.method.medium import MEDIA, MEDIUM_LABELS
 from ..dresg_addon.scene.up_axis import UP_AXES
 
 # Panel fields named as StylizeConfig settings (flat names), copied by a preset and read back by config().
@@ -29,6 +30,7 @@ CONFIG_FIELDS = (
     "stroke_size",
     "scene_weight",
     "scene_light",
+    "medium",
     "schedule",
     "optimize_geometry",
     "max_views",
@@ -162,6 +164,12 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         max=1.0,
         subtype="FACTOR",
         default=_default("scene_light"),
+    )
+    medium: EnumProperty(
+        name="Medium",
+        description="What the painting is: ink keeps a pen-and-ink drawing's lines across views",
+        items=[(name, *MEDIUM_LABELS[name]) for name in MEDIA],
+        default=_default("medium"),
     )
     schedule: EnumProperty(
         name="Schedule",

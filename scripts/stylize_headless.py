@@ -31,6 +31,7 @@ OVERRIDES = {  # command-line option -> panel setting
     "stroke_size": "stroke_size",
     "paint_scene": "scene_weight",
     "scene_light": "scene_light",
+    "medium": "medium",
     "schedule": "schedule",
     "geometry": "optimize_geometry",
     "max_views": "max_views",
@@ -110,6 +111,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         help="how much of the scene's light above the stroke scale the marks keep, in [0, 1], as a share of what "
         "Paint <-> Scene asks",
     )
+    parser.add_argument("--medium", choices=engine("method.medium").MEDIA, help="what the painting is (auto: read from it)")
     parser.add_argument("--schedule")
     parser.add_argument("--geometry", action=argparse.BooleanOptionalAction, help="optimise geometry offsets")
     parser.add_argument("--max-views", type=int)

@@ -332,6 +332,49 @@ def test_best_views_leave_splats_no_view_draws_alone_and_refuse_a_sharpness_that
         ColorSolveSettings(best_views=-1.0)
 
 
+def test_the_first_view_colours_each_splat_from_the_earliest_view_that_draws_it_well(small):
+    from dresg_addon.method.color_solve import BEST_VIEW_ROUNDS, first_view_colors, single_view_solutions
+
+    _, views = small
+    n = views.energy.numel()
+    settings = ColorSolveSettings(tolerance=1e-6, max_rounds=30, cg_iterations=16, anchor=0.3)
+    start = torch.full((n, 3), 0.5)
+    rng = np.random.default_rng(11)
+    painted = [views.images(torch.from_numpy(rng.uniform(0, 1, (n, 3)).astype(np.float32)))[v] for v in range(3)]
+    joint = solve_colors(views, painted, start, settings).colors
+    alone = torch.stack(single_view_solutions(views, painted, joint, replace(settings, max_rounds=BEST_VIEW_ROUNDS)))
+    drawn = _drawn(views)  # [V, N]
+    first = first_view_colors(views, painted, joint, settings, 0.5)
+    enough = drawn >= 0.5 * drawn.amax(0)
+    from_view = [enough[0], enough[1] & ~enough[0], enough[2] & ~enough[0] & ~enough[1]]
+    for v, splats in enumerate(from_view):
+        assert int(splats.sum()) > 0, f"no splat takes view {v}'s colours: the case tests nothing"
+        torch.testing.assert_close(first[splats], alone[v][splats], atol=1e-6, rtol=0)
+    # Share 1: only the view that draws it most counts, as the sharpest best views take it.
+    top = drawn.argmax(0)
+    torch.testing.assert_close(first_view_colors(views, painted, joint, settings, 1.0), alone[top, torch.arange(n)])
+    via = solve_colors(views, painted, start, replace(settings, first_view=0.5, best_views=4.0)).colors
+    torch.testing.assert_close(via, first)  # the first view takes the place of the best views
+
+
+def test_the_first_view_leaves_splats_no_view_draws_alone_and_refuses_a_share_outside_0_1():
+    from dresg_addon.method.color_solve import first_view_colors
+
+    scene = sphere_scene(n=80, far=5, seed=3)
+    views = linear_views(scene, ring_cameras(3, width=24, height=16))
+    drawn = views.energy > 0
+    joint = torch.rand(85, 3, generator=torch.Generator().manual_seed(2))
+    targets = views.images(torch.full((85, 3), 0.4))
+    first = first_view_colors(views, targets, joint, ColorSolveSettings(anchor=0.3), 0.5)
+    assert torch.equal(first[~drawn], joint[~drawn])
+    assert torch.isfinite(first).all() and float(first.min()) >= 0.0 and float(first.max()) <= 1.0
+    for share in (0.0, -0.5, 1.5, float("nan")):
+        with pytest.raises(ConfigError, match="share"):
+            first_view_colors(views, targets, joint, ColorSolveSettings(), share)
+    with pytest.raises(ConfigError, match="first_view"):
+        ColorSolveSettings(first_view=2.0)
+
+
 def test_fit_split_by_splat_width_separates_disagreeing_views_from_what_no_view_can_draw(small):
     """Agreeing targets: no band loses anything, jointly or alone. Each view with its own marks: every band's joint
     error is above the view's own. A mark finer than the splats: the view alone cannot draw it either."""

@@ -108,12 +108,12 @@ OLD_PRESETS = {
 GONE = {"layer_agreement": 0.0, "robust_power": 2.0, "log_optimum": False}
 # Settings added since, at each preset's value, and at the value that runs what the old code ran.
 ADDED = {
-    "standard": {"solve_start": "views", "solve_best_views": 4.0, "scene_light": 0.5},
-    "preview": {"solve_start": "views", "solve_best_views": 0.0, "scene_light": 0.5},
-    "paper": {"solve_start": "views", "solve_best_views": 0.0, "scene_light": 0.0},
-    "cpu": {"solve_start": "views", "solve_best_views": 0.0, "scene_light": 0.0},
+    "standard": {"solve_start": "views", "solve_best_views": 4.0, "scene_light": 0.5, "medium": "auto"},
+    "preview": {"solve_start": "views", "solve_best_views": 0.0, "scene_light": 0.5, "medium": "auto"},
+    "paper": {"solve_start": "views", "solve_best_views": 0.0, "scene_light": 0.0, "medium": "paint"},
+    "cpu": {"solve_start": "views", "solve_best_views": 0.0, "scene_light": 0.0, "medium": "paint"},
 }
-ADDED_AS_BEFORE = {"solve_start": "colors", "solve_best_views": 0.0, "scene_light": 0.0}
+ADDED_AS_BEFORE = {"solve_start": "colors", "solve_best_views": 0.0, "scene_light": 0.0, "medium": "paint"}
 
 
 @pytest.mark.parametrize("name", sorted(OLD_PRESETS))

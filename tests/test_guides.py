@@ -1,4 +1,5 @@
-"""Guides between views (method/guides.py): earlier views' proposals reprojected into a view, nearest first,
+"""Guides between views (method/guides.py): earlier views' proposals reprojected into a view, nearest first (ink:
+earliest first),
 and the loop's guided proposals agreeing across views better than unguided ones."""
 
 from __future__ import annotations
@@ -48,6 +49,9 @@ def test_the_nearest_earlier_view_wins_and_what_no_earlier_view_sees_has_no_weig
     both &= near
     assert both.sum() > 20
     assert float(image[2][both].mean()) > 0.95 and float(image[0][both].mean()) < 0.05
+    # Ink: the earliest view first, so a mark is copied from the view that drew it, not from a neighbour's copy.
+    image, _ = view_guide(2, [0, 1], [red, blue, None], depths, alphas, cameras, 2.0, earliest_first=True)
+    assert float(image[0][both].mean()) > 0.95 and float(image[2][both].mean()) < 0.05
     assert float(weight[alphas[2] < 0.5].max()) == 0.0  # the background gets no guide
     away = [ring[0], away_camera()]
     depths, alphas = renders(scene, away)

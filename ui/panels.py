@@ -154,7 +154,10 @@ class DRESG_PT_style(ChildPanel, bpy.types.Panel):
             layout.template_ID(settings, "style_image", open="image.open")
         layout.prop(settings, "stroke_size")
         layout.prop(settings, "scene_weight", slider=True)
-        layout.prop(settings, "scene_light", slider=True)
+        light = layout.row()
+        light.active = settings.medium != "ink"  # ink holds no scene light
+        light.prop(settings, "scene_light", slider=True)
+        layout.prop(settings, "medium")
         layout.prop(settings, "selection")
         if settings.selection == "GROUP":
             layout.prop_search(settings, "selection_group", context.active_object, "vertex_groups")

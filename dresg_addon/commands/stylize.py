@@ -19,6 +19,7 @@ from ..method.config import (
     preset,
     preset_description,
 )
+from ..method.medium import MEDIA, MEDIUM_LABELS
 from ..util.errors import ConfigError, WriteError
 from ._common import (
     add_background_option,
@@ -132,6 +133,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "splat; colors: from the colours it has (the capture's, at the first stage)",
     )
     parser.add_argument(
+        "--medium",
+        choices=MEDIA,
+        help="what the painting is (default: the preset's, auto in standard and preview); "
+        + "; ".join(f"{name}: {text[1]}" for name, text in MEDIUM_LABELS.items()),
+    )
+    parser.add_argument(
         "--sh-rest", choices=SH_REST_MODES, help="zero (default): drop view-dependent SH bands; keep: keep them"
     )
     parser.add_argument("--proposal-size", metavar="WxH", help="proposal resolution (default 448x320)")
@@ -193,6 +200,7 @@ def config_from_args(args):
         ("color_fit", "color_fit"),
         ("sh_rest", "sh_rest"),
         ("solve_start", "solve_start"),
+        ("medium", "medium"),
     ):
         if getattr(args, name):
             overrides[field] = getattr(args, name)

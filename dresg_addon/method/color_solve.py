@@ -57,6 +57,7 @@ class ColorSolveSettings:
     ridge: float = 1e-2  # lambda / mean diag(sum_v W_v^T W_v): damping of each round's step
     anchor: float = 0.0  # mu of the proximal term mu e_bar ||c - c_0||^2 (module docstring); 0: plain least squares
     best_views: float = 0.0  # sharpness p of best_view_colors, applied to the fit; 0: the joint fit itself
+    first_view: float = 0.0  # share tau of first_view_colors (in place of the best views); 0: off
 
     def __post_init__(self) -> None:
         checks = [
@@ -65,6 +66,7 @@ class ColorSolveSettings:
             (math.isfinite(self.ridge) and self.ridge > 0.0, "ridge must be finite and > 0"),
             (math.isfinite(self.anchor) and self.anchor >= 0.0, "anchor must be finite and >= 0"),
             (math.isfinite(self.best_views) and self.best_views >= 0.0, "best_views must be finite and >= 0"),
+            (0.0 <= self.first_view <= 1.0, "first_view must be in [0, 1]"),
         ]
         for ok, message in checks:
             if not ok:
@@ -412,6 +414,34 @@ def best_view_colors(
     return torch.where(total > WEIGHT_FLOOR, blended.float(), joint.float()).clamp(0.0, 1.0)
 
 
+def first_view_colors(
+    views: LinearViews,
+    targets: Sequence[torch.Tensor],  # V x [P, 3]
+    joint: torch.Tensor,  # [N, 3]: the joint fit
+    settings: ColorSolveSettings,
+    share: float,
+    each_view: Callable[[int], None] | None = None,  # as single_view_solutions takes it
+) -> torch.Tensor:  # [N, 3] in [0, 1]
+    """Each splat coloured from the earliest view (in the views' order) that draws it at least ``share`` of the
+    most any view does: c_i = c_vi for the first v with d_vi >= share x max_u d_ui, c_v view v's own solution
+    anchored to the joint fit (:func:`single_view_solutions`), d_vi as :func:`best_view_colors` has it. A splat
+    no view draws keeps its joint colour.
+
+    The views are painted in that order and each copies what the earlier ones drew (the guides), so the earliest
+    view's solution is the one the others copied: neighbouring splats take one view's marks, which line up,
+    where the best view of each (:func:`best_view_colors`) mixes views whose marks are a few pixels apart (a line
+    drawing's hatching comes out grey; bench/README.md, "Ink").
+    """
+    if not (math.isfinite(share) and 0.0 < share <= 1.0):
+        raise ConfigError(f"colour solver: the first view's share must be in (0, 1] (got {share})")
+    alone = single_view_solutions(views, targets, joint, replace(settings, max_rounds=BEST_VIEW_ROUNDS), each_view)
+    drawn = views.drawn_weights  # [V, N, 1]
+    enough = (drawn >= share * drawn.amax(0, keepdim=True)) & (drawn > WEIGHT_FLOOR)
+    first = enough.to(torch.uint8).argmax(0)  # [N, 1]: the first view that draws it enough (0 when none does)
+    chosen = torch.stack(alone).gather(0, first[None].expand(1, -1, 3))[0]
+    return torch.where(enough.any(0), chosen.float(), joint.float()).clamp(0.0, 1.0)
+
+
 def solve_colors(
     views: LinearViews,
     targets: Sequence[torch.Tensor],  # V x [3, H, W] (or [P, 3])
@@ -422,7 +452,9 @@ def solve_colors(
     each_view: Callable[[int], None] | None = None,  # (views solved alone so far) during the best views
 ) -> ColorSolveResult:
     """The fitted colours in [0, 1]: bounded least squares, anchored to ``start`` when ``settings.anchor`` > 0, then
-    with ``settings.best_views`` > 0 each splat taken from the views that draw it most (:func:`best_view_colors`).
+    with ``settings.first_view`` > 0 each splat taken from the earliest view that draws it well
+    (:func:`first_view_colors`), else with ``settings.best_views`` > 0 from the views that draw it most
+    (:func:`best_view_colors`).
 
     ``least_squares`` of the result holds the plain bounded least-squares optimum, the joint optimum the log
     reports: the least-squares solve itself when it is unanchored, else, only when ``optimum`` is asked for,
@@ -442,6 +474,8 @@ def solve_colors(
         result.disagreement = view_disagreement(views, flat, least_squares, settings)
         result.optimum_seconds = time.perf_counter() - started
     result.least_squares = least_squares
-    if settings.best_views > 0.0:
+    if settings.first_view > 0.0:
+        result.colors = first_view_colors(views, flat, result.colors, settings, settings.first_view, each_view)
+    elif settings.best_views > 0.0:
         result.colors = best_view_colors(views, flat, result.colors, settings, settings.best_views, each_view)
     return result

@@ -27,6 +27,7 @@ from dataclasses import dataclass, fields, replace
 
 from ..util.errors import ConfigError
 from .backends import BACKENDS
+from .medium import MEDIA
 
 SCHEDULES = ("snr-balanced", "fixed-1", "fixed-2", "triangle", "timestep-cosine")
 PROPOSALS = tuple(BACKENDS)  # the registered proposal backends (backends.py)
@@ -96,6 +97,10 @@ class ProposalSettings:
     # How strongly a view keeps to what earlier views proposed (synth); 0: views alone. 16 rather than 4: marks that
     # agree are what the fit keeps (bonsai x Starry Night, preview: the capture's texture kept 0.27 -> 0.22)
     guide_weight: float = 16.0
+    # What the painting is: "paint", "ink" (a pen-and-ink drawing: its lines kept across views, method/medium.py),
+    # or "auto", read from its colours (light ground, dark neutral marks: ink). Ink runs its own guides, no scene
+    # light and each splat from the first view that draws it, so it overrides guide_weight and scene_light.
+    medium: str = "paint"
     latent_lr: float = 0.05  # Adam on the latent (sd15 only)
 
     def __post_init__(self) -> None:
@@ -110,6 +115,7 @@ class ProposalSettings:
                 (0 <= self.scene_weight <= 1, f"scene_weight must be in [0, 1] (got {self.scene_weight})"),
                 (0 <= self.scene_light <= 1, f"scene_light must be in [0, 1] (got {self.scene_light})"),
                 (self.guide_weight >= 0 and math.isfinite(self.guide_weight), "guide_weight must be >= 0"),
+                (self.medium in MEDIA, f"medium must be one of {', '.join(MEDIA)}"),
             ],
         )
 
@@ -314,7 +320,7 @@ FLAT_NAMES["seed"] = (None, "seed")
 RETIRED = {"layer_agreement": 0.0, "robust_power": 2.0, "log_optimum": False}
 # Settings added later, at the value that runs what earlier versions ran: a run id leaves them out at that value,
 # so checkpoints written before they came still resume where the run is the same.
-INTRODUCED = {"solve_start": "colors", "solve_best_views": 0.0, "scene_light": 0.0}
+INTRODUCED = {"solve_start": "colors", "solve_best_views": 0.0, "scene_light": 0.0, "medium": "paint"}
 
 
 def setting_path(name: str) -> tuple[str | None, str]:
@@ -437,6 +443,7 @@ PRESETS: dict[str, StylizeConfig] = {
         optimize_geometry=False,
         early_stop=0.01,
         solve_best_views=4.0,
+        medium="auto",
     ),
     # A quick look at what ``standard`` paints (its Stroke Size and light): half the stages and views, and the joint
     # fit alone (the best views cost it 43 -> 73 s on the bonsai; patch SW within 5% of them on the four bonsai
@@ -452,6 +459,7 @@ PRESETS: dict[str, StylizeConfig] = {
         max_views=8,
         optimize_geometry=False,
         early_stop=0.01,
+        medium="auto",
     ),
 }
 DEFAULT_PRESET = "standard"

@@ -336,21 +336,25 @@ class BoundedColorFit:
         settings: ColorSolveSettings,
         optimum: bool = False,
         from_views: bool = True,
+        recolor: Callable[[torch.Tensor], torch.Tensor] | None = None,  # [N, 3] -> [N, 3]: e.g. ink's ramp
     ):
         self.views = renderer.linear_views(SOLVE_MIN_WEIGHT)
         self.fit, self.settings, self.optimum, self.from_views = fit, settings, optimum, from_views
+        self.recolor = recolor
 
     def solve(
         self, targets: Sequence[torch.Tensor], each_round=None, start: torch.Tensor | None = None, each_view=None
     ) -> ColorSolveResult:  # V x [3, H, W]
         """Solve from ``start`` (default: with ``from_views`` each splat's view average of the targets, else the
-        current colours; the anchor holds to it), write the colours into the fit state; ``optimum``: also the
-        plain least-squares optimum."""
+        current colours; the anchor holds to it), write the colours (through ``recolor``, when given) into the fit
+        state; ``optimum``: also the plain least-squares optimum."""
         if start is None:
             current = self.fit.colors.detach()
             start = view_average_colors(self.views, targets, current) if self.from_views else current
         start = start.detach()
         result = solve_colors(self.views, targets, start, self.settings, each_round, self.optimum, each_view)
+        if self.recolor is not None:
+            result.colors = self.recolor(result.colors)
         with torch.no_grad():
             self.fit.colors.copy_(result.colors)
         return result

@@ -2,7 +2,7 @@
 
 A view's proposal is reprojected into another view by the rendered depth of both
 (:func:`~dresg_addon.scene.warp.warp_to`: exact reprojection, a depth test against occlusion). For view
-i the earlier views are tried nearest camera first, and each pixel takes the first one that sees the same
+i the earlier views are tried nearest camera first (for ink, earliest first), and each pixel takes the first one that sees the same
 surface there, so the guide is one view's strokes, not an average of several. Its weight is
 ``weight`` where some earlier view sees the pixel and 0 elsewhere (surfaces new to this view, occlusions,
 the background).
@@ -34,14 +34,22 @@ def view_guide(
     alphas: Sequence[torch.Tensor],  # per view: [H, W] coverage at the camera's size
     cameras: Sequence[Camera],
     weight: float,
+    earliest_first: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """(guide [3, h, w], weight [h, w]) for view ``target`` from the ``sources``' proposals; None without sources."""
+    """(guide [3, h, w], weight [h, w]) for view ``target`` from the ``sources``' proposals; None without sources.
+
+    ``earliest_first`` tries the sources in the order they were painted instead of nearest first, so a mark is
+    copied from the view that first drew it rather than along a chain of neighbours (ink: :mod:`.medium`)."""
     if not sources or weight <= 0:
         return None
     camera = cameras[target]
     size = tuple(proposals[sources[0]].shape[-2:])
     centre = np.asarray(camera.center, dtype=np.float64)
-    order = sorted(sources, key=lambda j: float(np.linalg.norm(np.asarray(cameras[j].center) - centre)))
+    order = (
+        sorted(sources)
+        if earliest_first
+        else sorted(sources, key=lambda j: float(np.linalg.norm(np.asarray(cameras[j].center) - centre)))
+    )
     image = torch.zeros(3, camera.height, camera.width)
     taken = torch.zeros(camera.height, camera.width, dtype=torch.bool)
     for j in order:

@@ -52,6 +52,7 @@ from .fitting import (
     splat_footprint,
 )
 from .guides import view_guide
+from .medium import INK_FIRST_VIEW, INK_GUIDE_WEIGHT, InkRamp, resolve_medium
 from .optim import make_fit_optimizer, scene_extent
 from .schedule import Stage, stage_gammas, stage_timesteps
 from .style_distance import sliced_wasserstein_patches
@@ -158,6 +159,17 @@ def stage_improvement(distances: Sequence[float], window: int = EARLY_STOP_WINDO
     if len(distances) <= window or distances[-1 - window] <= 0:
         return None
     return (distances[-1 - window] - distances[-1]) / distances[-1 - window]
+
+
+def medium_config(config: StylizeConfig, style_rgb: np.ndarray, say: Callable[[str], None]) -> StylizeConfig:
+    """The config with its medium resolved (``auto`` read from the painting, :func:`~.medium.resolve_medium`); ink
+    sets the guides' weight and the scene light its own way (:mod:`.medium`)."""
+    medium, note = resolve_medium(config.proposal.medium, style_rgb)
+    if note:
+        say(note)
+    if medium == "ink":
+        return config.with_(medium="ink", guide_weight=INK_GUIDE_WEIGHT, scene_light=0.0)
+    return config.with_(medium="paint")
 
 
 def _proposal_backend(config: StylizeConfig, device):
@@ -267,6 +279,8 @@ class Stylization:
         self.scene, self.config, self.hooks, self.record, self.mask = scene, config, hooks, record, mask
         self.device, self.log_optimum = device, log_optimum
         self.style_rgb = _checked_style(style_rgb)
+        self.config = config = medium_config(config, self.style_rgb, hooks.say)
+        self.ramp = InkRamp(self.style_rgb) if config.proposal.medium == "ink" else None
         check_run_settings(config)
         self.size = (config.proposal.height, config.proposal.width)
         torch.manual_seed(config.seed)
@@ -375,9 +389,17 @@ class Stylization:
         mean_params = [state.d_means] if state.d_means is not None else []
         optimizer = make_fit_optimizer([state.colors], geometry_params, settings, mean_params)
         base_renders = [r.clone() for r in self.renderer.all(state)]
+        solve = config.solve.settings()
+        if self.ramp is not None:
+            solve = replace(solve, first_view=INK_FIRST_VIEW)
         self.solver = (
             BoundedColorFit(
-                self.renderer, state, config.solve.settings(), self.log_optimum, config.solve.start == "views"
+                self.renderer,
+                state,
+                solve,
+                self.log_optimum,
+                config.solve.start == "views",
+                None if self.ramp is None else self.ramp.apply,
             )
             if config.fit.solves_colors()
             else None
@@ -473,7 +495,14 @@ class Stylization:
             guide = None
             if guided:
                 guide = view_guide(
-                    i, list(range(i)), done, depths, self.alphas, self.cameras, self.config.proposal.guide_weight
+                    i,
+                    list(range(i)),
+                    done,
+                    depths,
+                    self.alphas,
+                    self.cameras,
+                    self.config.proposal.guide_weight,
+                    earliest_first=self.ramp is not None,
                 )
             kwargs = {"guide": guide} if guide is not None else {}
             self.states[i], energies = self.backend.propose(
@@ -628,7 +657,7 @@ class Stylization:
             "views": len(self.cameras),
             "gaussians_optimised": int(self.state.seen.numel()),
             "scene_extent": self.extent,
-            **({"footprint_px": self.footprint} if n == 1 else {}),
+            **({"footprint_px": self.footprint, "medium": self.config.proposal.medium} if n == 1 else {}),
             "style_distance": work.distance,
             "base_style_distance": self.distances[0],
         }

@@ -1,0 +1,111 @@
+"""The painting's medium (method/medium.py): ink told from paint by its colours, the ink ramp, and an ink run."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from conftest import SHARED_DATA
+from test_pipeline import TINY, ring_cameras, sphere_scene
+
+from dresg_addon.method.config import PRESETS, preset
+from dresg_addon.method.loop import medium_config, stylize
+from dresg_addon.method.medium import (
+    INK_GUIDE_WEIGHT,
+    LUMINANCE,
+    RAMP_BINS,
+    InkRamp,
+    read_medium,
+    resolve_medium,
+)
+from dresg_addon.scene.demo import demo_style_image, line_drawing_image
+from dresg_addon.util.errors import ConfigError
+from dresg_addon.util.imageio import read_image
+
+
+def drawing(ink=(0.1, 0.1, 0.12), paper=(0.95, 0.93, 0.86), size=(64, 96), seed=0) -> np.ndarray:
+    """Diagonal hatching of ``ink`` on ``paper``, with a little noise."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[: size[0], : size[1]]
+    lines = ((x + y) % 7 < 2)[..., None]
+    image = np.where(lines, np.float32(ink), np.float32(paper))
+    return np.clip(image + 0.02 * rng.normal(size=image.shape), 0, 1).astype(np.float32)
+
+
+def test_a_drawing_reads_as_ink_and_paintings_as_paint():
+    assert read_medium(line_drawing_image()).ink
+    assert read_medium(drawing()).ink
+    assert not read_medium(demo_style_image()).ink
+    assert not read_medium(drawing(ink=(0.8, 0.1, 0.1))).ink  # red lines: a coloured drawing is painted
+    assert not read_medium(drawing(paper=(0.3, 0.3, 0.3))).ink  # no light ground
+    assert not read_medium(np.full((8, 8, 3), 0.95, np.float32)).ink  # paper without marks
+    for path in sorted((SHARED_DATA / "styles").glob("*.jpg")):  # the public paintings, when the data is there
+        assert not read_medium(read_image(path)).ink, path
+
+
+def test_resolve_medium_reads_auto_takes_the_others_as_given_and_refuses_the_unknown():
+    lines = line_drawing_image()
+    medium, note = resolve_medium("auto", lines)
+    assert medium == "ink" and "ink on paper" in note and "light ground" in note
+    assert resolve_medium("auto", demo_style_image()) == ("paint", None)
+    assert resolve_medium("paint", lines) == ("paint", None)
+    assert resolve_medium("ink", demo_style_image()) == ("ink", None)
+    with pytest.raises(ConfigError, match="medium"):
+        resolve_medium("pencil", lines)
+    with pytest.raises(ConfigError, match="medium"):
+        preset("standard", medium="pencil")
+
+
+def test_ink_sets_its_guides_and_light_and_paint_keeps_the_settings():
+    said = []
+    ink = medium_config(PRESETS["standard"], line_drawing_image(), said.append)
+    assert ink.proposal.medium == "ink" and len(said) == 1
+    assert ink.proposal.guide_weight == INK_GUIDE_WEIGHT and ink.proposal.scene_light == 0.0
+    paint = medium_config(PRESETS["standard"], demo_style_image(), said.append)
+    assert paint == PRESETS["standard"].with_(medium="paint") and len(said) == 1
+    assert {name: config.proposal.medium for name, config in PRESETS.items()} == {
+        "standard": "auto",
+        "preview": "auto",
+        "paper": "paint",
+        "cpu": "paint",
+    }
+    # A run id leaves the medium out at paint, so checkpoints written before it came still resume.
+    assert "medium" not in paint.run_values() and ink.run_values()["medium"] == "ink"
+
+
+def test_the_ink_ramp_keeps_the_drawings_colours_at_their_luminance():
+    style = drawing()
+    ramp = InkRamp(style)
+    rng = np.random.default_rng(3)
+    colors = torch.from_numpy(rng.uniform(0, 1, (500, 3)).astype(np.float32))
+    out = ramp.apply(colors)
+    assert out.dtype == colors.dtype and torch.isfinite(out).all()
+    assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+    chroma = out.max(1).values - out.min(1).values
+    assert float(chroma.max()) < 0.15  # nothing more colourful than the drawing's ink and paper
+    weights = torch.tensor(LUMINANCE)
+    luma_in, luma_out = colors @ weights, out @ weights
+    inside = (luma_in > float(ramp.luminance.min())) & (luma_in < float(ramp.luminance.max()))
+    assert int(inside.sum()) > 100
+    assert float((luma_out - luma_in)[inside].abs().max()) < 2.0 / RAMP_BINS  # the fit's shading survives
+    torch.testing.assert_close(ramp.apply(out), out, atol=2e-3, rtol=0)  # on the ramp already: kept
+    # Ends held: darker than the darkest ink is the darkest ink, lighter than the paper the paper.
+    ends = ramp.apply(torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
+    torch.testing.assert_close(ends, ramp.colors[[0, -1]].float().clamp(0, 1))
+    flat = InkRamp(np.full((4, 4, 3), 0.5, np.float32))  # one luminance: one colour
+    torch.testing.assert_close(flat.apply(colors), torch.full_like(colors, 0.5), atol=1e-6, rtol=0)
+
+
+def test_an_ink_run_says_so_and_puts_every_splat_on_the_drawings_ramp():
+    said = []
+    style = drawing(size=(24, 32))
+    scene = sphere_scene(n=300)
+    result = stylize(scene, ring_cameras(3), style, TINY.with_(medium="auto", post_steps=0), messages=said.append)
+    assert any("ink on paper" in line for line in said)
+    assert result.log[0]["medium"] == "ink"
+    colors = torch.from_numpy(result.scene.sh_dc * 0.28209479177387814 + 0.5).float()
+    seen = torch.from_numpy(np.abs(result.scene.sh_dc - scene.sh_dc).max(1) > 0)
+    assert int(seen.sum()) > 100
+    torch.testing.assert_close(InkRamp(style).apply(colors[seen]), colors[seen], atol=2e-3, rtol=0)
+    painted = stylize(scene, ring_cameras(3), style, TINY.with_(medium="paint", post_steps=0))
+    assert painted.log[0]["medium"] == "paint"
