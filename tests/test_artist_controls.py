@@ -189,6 +189,9 @@ def test_cli_flags_parse_into_the_config():
         config_from_args(_stylize_args("--paint-scene", "1.5"))
     with pytest.raises(ConfigError, match="stroke_size"):
         config_from_args(_stylize_args("--stroke-size", "9"))
+    assert default.proposal.medium == "auto"
+    assert config_from_args(_stylize_args("--medium", "ink")).proposal.medium == "ink"
+    assert config_from_args(_stylize_args("--preset", "paper", "--medium", "auto")).proposal.medium == "auto"
 
 
 def test_the_old_content_weight_flag_is_gone(capsys):
@@ -204,9 +207,10 @@ def test_the_headless_script_takes_both_flags():
 
     args = stylize_headless.parse_args(
         ["--ply", "a.ply", "--style", "s.png", "--out", "o.ply", "--stroke-size", "3", "--paint-scene", "0.2"]
-        + ["--scene-light", "0.25"]
+        + ["--scene-light", "0.25", "--medium", "ink"]
     )
-    assert (args.stroke_size, args.paint_scene, args.scene_light) == (3.0, 0.2, 0.25)
+    assert (args.stroke_size, args.paint_scene, args.scene_light, args.medium) == (3.0, 0.2, 0.25, "ink")
+    assert stylize_headless.OVERRIDES["medium"] == "medium"
     assert stylize_headless.OVERRIDES["scene_light"] == "scene_light"
     assert stylize_headless.OVERRIDES["stroke_size"] == "stroke_size"
     assert stylize_headless.OVERRIDES["paint_scene"] == "scene_weight"

@@ -141,7 +141,7 @@ def test_max_views_applies_to_ticked_cameras(addon, tmp_path):
     assert run.views == [0, 1, 2, 3, 4] and note == ""
 
 
-def test_stroke_size_and_paint_scene_reach_the_run(addon, tmp_path):
+def test_stroke_size_paint_scene_light_and_medium_reach_the_run(addon, tmp_path):
     settings_rna = bpy.types.Scene.bl_rna.properties["dresg"].fixed_type.properties
     stroke, weight, light = settings_rna["stroke_size"], settings_rna["scene_weight"], settings_rna["scene_light"]
     assert (stroke.name, weight.name, light.name) == ("Stroke Size", "Paint <-> Scene", "Scene Light")
@@ -161,15 +161,22 @@ def test_stroke_size_and_paint_scene_reach_the_run(addon, tmp_path):
     settings.style_path = str(tmp_path / "style.png")
     bpy.ops.dresg.add_orbit_cameras(count=2)
     settings.stroke_size, settings.scene_weight, settings.scene_light = 2.5, 0.8, 0.0
+    medium = settings_rna["medium"]
+    assert medium.name == "Medium" and [item.identifier for item in medium.enum_items] == ["auto", "paint", "ink"]
+    assert settings.medium == config.PRESETS[config.DEFAULT_PRESET].proposal.medium == "auto"
+    settings.medium = "ink"
     run, _ = addon.operators.stylize.prepare_job(bpy.context)
     proposal = run.config.proposal
     assert (proposal.stroke_size, proposal.scene_weight, proposal.scene_light) == pytest.approx((2.5, 0.8, 0.0))
+    assert proposal.medium == "ink"
     settings.preset = "preview"  # a preset brings its own values back
     assert settings.scene_weight == pytest.approx(config.PRESETS["preview"].proposal.scene_weight)
     assert settings.stroke_size == config.PRESETS["preview"].proposal.stroke_size
     assert settings.scene_light == pytest.approx(config.PRESETS["preview"].proposal.scene_light)
+    assert settings.medium == "auto"
     panel = [args[1] for name, args, kw in _drawn(addon.ui.panels.DRESG_PT_style) if name == "prop"]
-    assert panel.index("stroke_size") < panel.index("scene_weight") < panel.index("scene_light") < panel.index("preset")
+    assert panel.index("stroke_size") < panel.index("scene_weight") < panel.index("scene_light") < panel.index("medium")
+    assert panel.index("medium") < panel.index("preset")
 
 
 def _quick_selection_scene(tmp_path):
