@@ -17,6 +17,8 @@ from dresg_addon.commands.stylize import config_from_args
 from dresg_addon.method import loop
 from dresg_addon.method.backends import (
     CONTENT_WEIGHT_CAP,
+    DARK_SCENE,
+    LIT_SCENE,
     sd15_content_weight,
     synth_content_weight,
     synth_light_weight,
@@ -24,7 +26,7 @@ from dresg_addon.method.backends import (
 from dresg_addon.method.bookkeeping import RunHooks, RunRecord
 from dresg_addon.method.config import PRESETS, StylizeConfig, preset
 from dresg_addon.method.fitting import ViewRenderer, seen_gaussians, splat_footprint
-from dresg_addon.method.loop import Stylization, _proposal_backend, stroke_size_note, stylize
+from dresg_addon.method.loop import Stylization, _proposal_backend, scene_brightness, stroke_size_note, stylize
 from dresg_addon.method.proposal.synth import SynthBackend, SynthSettings
 from dresg_addon.raster import RasterSettings
 from dresg_addon.raster.projection import project_gaussians, projected_mean_variance, splat_covariances
@@ -117,6 +119,31 @@ def test_paint_scene_sets_how_much_of_the_scenes_light_the_synth_backend_holds()
         assert backend.settings.light_weight == pytest.approx(expected)
     ablated = _proposal_backend(preset("standard", scene_light=1.0, use_content_query=False), None)
     assert ablated.settings.light_weight == 0.0
+
+
+def test_a_dark_scene_holds_none_of_its_light_and_still_matches_the_painting_once_more():
+    assert synth_light_weight(0.5, 1.0, DARK_SCENE) == 0.0 and synth_light_weight(0.5, 1.0, 0.05) == 0.0
+    assert synth_light_weight(0.5, 1.0, LIT_SCENE) == synth_light_weight(0.5, 1.0, 0.9) == 1.0
+    assert synth_light_weight(0.5, 1.0, (DARK_SCENE + LIT_SCENE) / 2) == pytest.approx(0.5)
+    assert synth_light_weight(0.5, 1.0) == 1.0  # no brightness given: a lit scene
+    dark = _proposal_backend(preset("standard"), None, scene_brightness=0.1).settings
+    lit = _proposal_backend(preset("standard"), None, scene_brightness=0.4).settings
+    assert (dark.light_weight, dark.final_match) == (0.0, True)
+    assert (lit.light_weight, lit.final_match) == (0.5, True)
+    unasked = _proposal_backend(preset("standard", scene_light=0.0), None, scene_brightness=0.4).settings
+    assert (unasked.light_weight, unasked.final_match) == (0.0, False)  # as the paper's presets run
+    ablated = _proposal_backend(preset("standard", use_content_query=False), None, scene_brightness=0.4).settings
+    assert (ablated.light_weight, ablated.final_match) == (0.0, False)
+
+
+def test_scene_brightness_is_the_mean_luminance_of_the_covered_pixels():
+    image = torch.zeros(3, 4, 6)
+    image[:, :, :3] = 0.8
+    coverage = torch.zeros(4, 6)
+    coverage[:, :3] = 1.0
+    assert scene_brightness([image, image], [coverage, coverage]) == pytest.approx(0.8)
+    assert scene_brightness([image], [torch.zeros(4, 6)]) == 1.0  # nothing covered: nothing to hold
+    assert scene_brightness([], []) == 1.0
 
 
 def test_a_checkpoint_written_before_the_light_hold_keeps_its_run_id():

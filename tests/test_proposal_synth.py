@@ -501,6 +501,23 @@ def test_a_proposal_holds_the_scenes_shading_with_light_weight():
     assert bool(torch.isfinite(held).all()) and off(held) < 0.6 * off(loose)
 
 
+def test_a_final_match_gives_a_coarse_stage_the_paintings_palette_at_full_resolution():
+    """A stage that ends on a coarse level proposes its upsampled blur; matched once more at full resolution, its
+    colours spread as the painting's do."""
+    content, painting = content_image(160, 200), style_image(160, 200)  # two pyramid levels: 951 ends on the coarse one
+
+    def spread_off(image):  # how far the image's luminance quantiles are from the painting's
+        q = torch.linspace(0.05, 0.95, 19)
+        return float(
+            (torch.quantile(image.mean(0).flatten(), q) - torch.quantile(painting.mean(0).flatten(), q)).abs().mean()
+        )
+
+    plain, _ = SynthBackend().propose(content, (951,), painting, content)
+    matched, _ = SynthBackend(final_match=True).propose(content, (951,), painting, content)
+    assert bool(torch.isfinite(matched).all()) and float(matched.min()) >= 0.0 and float(matched.max()) <= 1.0
+    assert spread_off(matched) < 0.5 * spread_off(plain)
+
+
 @pytest.mark.parametrize("light_weight", [0.0, 1.0])
 @pytest.mark.parametrize("timestep", [1, 951])  # a full-resolution pass, a coarse one
 def test_a_fine_checker_in_the_content_does_not_reach_a_proposal_of_a_smooth_painting(timestep, light_weight):

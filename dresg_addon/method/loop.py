@@ -36,9 +36,9 @@ from ..scene.gaussians import GaussianScene, blend_colors
 from ..util.errors import CameraError, ConfigError, NumericalError
 from ..util.machine import peak_rss_mb
 from . import views as view_selection
-from .backends import BackendSettings, backend, synth_stroke_sigma
+from .backends import LIT_SCENE, BackendSettings, backend, synth_light_weight, synth_stroke_sigma
 from .bookkeeping import Progress, RunHooks, RunRecord, StageUpdate, prior_costs, run_id
-from .color_transfer import covariance_color_transform, coverage_weight
+from .color_transfer import covariance_color_transform, coverage_weight, luminance
 from .config import StylizeConfig, check_run_settings
 from .fitting import (
     BoundedColorFit,
@@ -172,14 +172,16 @@ def medium_config(config: StylizeConfig, style_rgb: np.ndarray, say: Callable[[s
     return config.with_(medium="paint")
 
 
-def _proposal_backend(config: StylizeConfig, device):
-    """The configured proposal backend, built by its registry entry from the run's settings it declares."""
+def _proposal_backend(config: StylizeConfig, device, scene_brightness: float = 1.0):
+    """The configured proposal backend, built by its registry entry from the run's settings it declares;
+    ``scene_brightness`` is :func:`scene_brightness` of the run's content views."""
     proposal, ablation = config.proposal, config.ablation
     settings = BackendSettings(
         seed=config.seed,
         stroke_size=proposal.stroke_size,
         scene_weight=proposal.scene_weight,
         scene_light=proposal.scene_light,
+        scene_brightness=scene_brightness,
         use_content_query=ablation.use_content_query,
         use_style_keys=ablation.use_style_keys,
         use_style_values=ablation.use_style_values,
@@ -188,6 +190,17 @@ def _proposal_backend(config: StylizeConfig, device):
         device=device,
     )
     return backend(proposal.backend).make(settings)
+
+
+def scene_brightness(images: Sequence[torch.Tensor], coverages: Sequence[torch.Tensor]) -> float:
+    """Mean Rec. 709 luminance of the covered pixels (coverage > COVERED) of ``images`` [3, H, W] together; 1 when
+    none is covered (nothing to hold the light of)."""
+    total, count = 0.0, 0
+    for image, coverage in zip(images, coverages):
+        covered = coverage > COVERED
+        total += float(luminance(image[None])[0, 0][covered].double().sum())
+        count += int(covered.sum())
+    return total / count if count else 1.0
 
 
 def stroke_sigma(config: StylizeConfig) -> float:
@@ -430,7 +443,6 @@ class Stylization:
 
     def _set_up_proposals(self, base_renders: list[torch.Tensor], content_images) -> None:
         """The proposal backend and its fixed references at the proposal size: style, contents, coverage."""
-        self.backend = _proposal_backend(self.config, self.device)
         style = torch.from_numpy(self.style_rgb).permute(2, 0, 1).contiguous()
         self.style = _resize(style, *style_size(self.config))  # Stroke Size: the painting's scale against the view
         self.contents = []
@@ -445,6 +457,17 @@ class Stylization:
             self.alphas = [self.renderer.alpha(v, self.state).detach() for v in range(len(self.cameras))]
         self.coverages = [_resize(a[None].expand(3, -1, -1), *self.size)[0] for a in self.alphas]
         self.fitter.covered = [a > COVERED for a in self.alphas]  # its steps' RMSE over covered pixels, for progress
+        self.brightness = scene_brightness(self.contents, self.coverages)
+        self.backend = _proposal_backend(self.config, self.device, self.brightness)
+        proposal = self.config.proposal
+        if proposal.backend == "synth" and proposal.scene_light > 0 and self.brightness < LIT_SCENE:
+            held = synth_light_weight(1.0, 1.0, self.brightness)
+            self.hooks.say(
+                f"the scene is dark (mean luminance {self.brightness:.2f}): "
+                + (f"{held:.0%} of" if held > 0 else "none of")
+                + f" the Scene Light asked for is held (all of it from {LIT_SCENE:g}): a dark capture's light held costs "
+                "its forms"
+            )
 
     def _resume_or_encode(self, base_renders: list[torch.Tensor]) -> None:
         """Resume from a checkpoint of the same run, else encode the base renders; the style distances so far."""
@@ -657,7 +680,11 @@ class Stylization:
             "views": len(self.cameras),
             "gaussians_optimised": int(self.state.seen.numel()),
             "scene_extent": self.extent,
-            **({"footprint_px": self.footprint, "medium": self.config.proposal.medium} if n == 1 else {}),
+            **(
+                {"footprint_px": self.footprint, "medium": self.config.proposal.medium, "brightness": self.brightness}
+                if n == 1
+                else {}
+            ),
             "style_distance": work.distance,
             "base_style_distance": self.distances[0],
         }

@@ -21,7 +21,7 @@ a pyramid level and a patch size is:
 
 After the last pass, with ``light_weight`` > 0, the scene's light is held: the proposal's luminance above the
 content sigma pulled that share of the way to the content's, the colours matched to the painting again
-(:func:`hold_light`). The fusion's pull is W / (1 + W), about 0.2 in flat regions, so there the painting's
+(:func:`hold_light`; with ``final_match`` the colours are matched again without the hold). The fusion's pull is W / (1 + W), about 0.2 in flat regions, so there the painting's
 marks set the light as well as the texture; held, the scene's shading and regions come through under the marks.
 
 How the paper's quantities map onto it (Sec. 4.1, Algorithm 1 lines 3-5):
@@ -136,6 +136,10 @@ class SynthSettings:
     # content's (colour-transferred) and its colours matched to the painting again (:func:`hold_light`). 0: the
     # fusion's W / (1 + W) alone, which in flat regions (W 0.3) lets the painting repaint the scene's shading.
     light_weight: float = 0.0
+    # The proposal's colours matched to the painting once more after the last pass, at full resolution (and after
+    # the light is held, which always does it): a stage that ends on a coarse level then proposes the painting's
+    # palette, not its upsampled blur.
+    final_match: bool = False
     noise: float = 50.0 / 255.0  # matching noise of a stage's first pass, x sqrt(1 - abar_k)
     histogram_matching: bool = True
     search_chunk: int = 2048  # estimate patches per matrix multiply of the nearest-patch search
@@ -705,8 +709,9 @@ class SynthBackend(ProposalBackend):
         x = upsample(x, height, width)
         if s.light_weight > 0.0:
             content_low, _ = self._content(content, style, coverage, keys, 0)
-            held = hold_light(x, content_low, s.light_weight, self._sigma(0))
-            x = to_style_colors(held, style, coverage, s.histogram_matching)
+            x = hold_light(x, content_low, s.light_weight, self._sigma(0))
+        if s.light_weight > 0.0 or s.final_match:
+            x = to_style_colors(x, style, coverage, s.histogram_matching)
         keep = 1.0 if coverage is None else coverage_weight(coverage)[None]
         return (render + keep * (x - render)).clamp(0.0, 1.0), energies
 
