@@ -468,7 +468,7 @@ DEFAULT_PRESET = "standard"
 # splats, 16 orbit cameras, AMD EPYC 2 cores, as in the README's presets table). The stages, views and fit come
 # from the preset itself (preset_description), so the text cannot disagree with it.
 PRESET_INFO: dict[str, tuple[str, str, str]] = {
-    "standard": ("Standard", "The default", "about 2 min for 273k splats on 2 cores"),
+    "standard": ("Standard", "The default", "about 2.5 min for 273k splats on 2 cores"),
     "preview": ("Preview", "A quick look", "under a minute for 273k splats on 2 cores"),
     "paper": ("Paper (GPU)", "The paper's exact settings", "hours on a CPU: use a GPU"),
     "cpu": (
