@@ -40,7 +40,10 @@ INK_FIRST_VIEW = 0.5  # a splat's colour from the earliest view that draws it at
 RAMP_BINS = 64
 # What each medium means, for the CLI's help and the panel's menu: (label, description).
 MEDIUM_LABELS = {
-    "auto": ("Auto", "Read from the painting: a light ground with dark, nearly neutral marks is ink, anything else paint"),
+    "auto": (
+        "Auto",
+        "Read from the painting: a light ground with dark, nearly neutral marks is ink, anything else paint",
+    ),
     "paint": ("Paint", "A painting: marks and regions from each view, held to the scene's light"),
     "ink": (
         "Ink",
@@ -88,7 +91,7 @@ def resolve_medium(medium: str, style_rgb: np.ndarray) -> tuple[str, str | None]
         return "paint", None
     return "ink", (
         f"the painting reads as ink on paper ({reading.describe()}): painting it as ink, each line from the first "
-        "view that drew it and no scene light held (medium \"paint\" paints it as a painting)"
+        'view that drew it and no scene light held (medium "paint" paints it as a painting)'
     )
 
 
