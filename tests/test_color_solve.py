@@ -10,7 +10,7 @@ import pytest
 import torch
 from test_pipeline import away_camera, ring_cameras, sphere_scene
 
-from dresg_addon.method.color_solve import ColorSolveSettings, LinearViews, solve_colors
+from dresg_addon.method.color_solve import ColorSolveSettings, LinearViews, projected_solve, solve_colors
 from dresg_addon.raster import ColorOnlyRenderer, geometry_tensors
 from dresg_addon.scene.gaussians import GaussianScene
 from dresg_addon.util.errors import ConfigError, NumericalError
@@ -332,29 +332,66 @@ def test_best_views_leave_splats_no_view_draws_alone_and_refuse_a_sharpness_that
         ColorSolveSettings(best_views=-1.0)
 
 
-def test_the_first_view_colours_each_splat_from_the_earliest_view_that_draws_it_well(small):
-    from dresg_addon.method.color_solve import BEST_VIEW_ROUNDS, first_view_colors, single_view_solutions
+def test_each_splats_first_view_is_the_earliest_that_draws_it_well(small):
+    from dresg_addon.method.color_solve import first_views
+
+    _, views = small
+    drawn = _drawn(views)  # [V, N]
+    first = first_views(views.drawn_weights, 0.5)
+    enough = (drawn >= 0.5 * drawn.amax(0)) & (drawn > 0)
+    for v, earlier in ((0, []), (1, [0]), (2, [0, 1])):
+        expected = enough[v] & ~enough[earlier].any(0) if earlier else enough[v]
+        assert int(expected.sum()) > 0, f"no splat is first drawn by view {v}: the case tests nothing"
+        assert torch.equal(first == v, expected)
+    assert torch.equal(first == -1, ~(drawn > 0).any(0))
+    assert torch.equal(first_views(views.drawn_weights, 1.0), torch.where((drawn > 0).any(0), drawn.argmax(0), -1))
+
+
+def test_views_in_turn_hold_what_earlier_views_painted_and_reach_targets_that_agree(small):
+    from dresg_addon.method.color_solve import PAINT_ROUNDS, ViewsInTurn, first_view_colors, view_average_colors
 
     _, views = small
     n = views.energy.numel()
-    settings = ColorSolveSettings(tolerance=1e-6, max_rounds=30, cg_iterations=16, anchor=0.3)
-    start = torch.full((n, 3), 0.5)
+    settings = ColorSolveSettings(tolerance=1e-6, cg_iterations=16, anchor=0.3)
     rng = np.random.default_rng(11)
+    # Targets that agree: painting in turn reaches each of them as closely as the joint fit does.
+    truth = torch.from_numpy(rng.uniform(0.2, 0.8, (n, 3)).astype(np.float32))
+    agreeing = views.images(truth)
+    turned = first_view_colors(views, agreeing, torch.zeros(n, 3), settings, 0.5)
+    for image, target, coverage in zip(views.images(turned), agreeing, views.coverages):
+        covered = coverage[:, 0] > 0.5
+        assert float((image - target)[covered].square().mean().sqrt()) < 0.01
+    # Each view its own marks: view 0 paints alone, as its own unanchored solve; a later view's splats are solved
+    # with the earlier views' held, so its pixels over them are left to what view 0 painted there.
     painted = [views.images(torch.from_numpy(rng.uniform(0, 1, (n, 3)).astype(np.float32)))[v] for v in range(3)]
-    joint = solve_colors(views, painted, start, settings).colors
-    alone = torch.stack(single_view_solutions(views, painted, joint, replace(settings, max_rounds=BEST_VIEW_ROUNDS)))
-    drawn = _drawn(views)  # [V, N]
-    first = first_view_colors(views, painted, joint, settings, 0.5)
-    enough = drawn >= 0.5 * drawn.amax(0)
-    from_view = [enough[0], enough[1] & ~enough[0], enough[2] & ~enough[0] & ~enough[1]]
-    for v, splats in enumerate(from_view):
-        assert int(splats.sum()) > 0, f"no splat takes view {v}'s colours: the case tests nothing"
-        torch.testing.assert_close(first[splats], alone[v][splats], atol=1e-6, rtol=0)
-    # Share 1: only the view that draws it most counts, as the sharpest best views take it.
-    top = drawn.argmax(0)
-    torch.testing.assert_close(first_view_colors(views, painted, joint, settings, 1.0), alone[top, torch.arange(n)])
-    via = solve_colors(views, painted, start, replace(settings, first_view=0.5, best_views=4.0)).colors
-    torch.testing.assert_close(via, first)  # the first view takes the place of the best views
+    turn = ViewsInTurn(views, 0.5, settings)
+    assert not bool(turn.painted.any())
+    turn.paint(0, painted[0])
+    one = LinearViews([views.maps[0]], [views.constants[0]])
+    alone = projected_solve(
+        one,
+        [painted[0]],
+        view_average_colors(one, [painted[0]], torch.full((n, 3), 0.5)),
+        replace(settings, anchor=0.0, max_rounds=PAINT_ROUNDS),
+    ).colors
+    mine = turn.first == 0
+    assert torch.equal(turn.painted, mine)
+    torch.testing.assert_close(turn.colors[mine], alone[mine], atol=1e-6, rtol=0)
+    held = turn.colors[mine].clone()
+    turn.paint(1, painted[1])
+    turn.paint(2, painted[2])
+    torch.testing.assert_close(turn.colors[mine], held, atol=0, rtol=0)
+    assert torch.equal(turn.painted, turn.first >= 0)
+    # What the painted splats show: their colours' render over the pixel's coverage (not darkened by a thin one).
+    image, share = turn.painted_image(1)
+    render, coverage = views.maps[1].matvec(turn.colors), views.coverages[1]
+    full = (share > 0.999) & (coverage[:, 0] > 0.01)
+    assert int(full.sum()) > 10
+    torch.testing.assert_close(image[full] * coverage[full], render[full], atol=1e-3, rtol=0)
+    assert torch.isfinite(image).all() and float(share.min()) >= 0.0 and float(share.max()) <= 1.0
+    via = solve_colors(views, painted, torch.full((n, 3), 0.5), replace(settings, first_view=0.5, best_views=4.0))
+    joint = solve_colors(views, painted, torch.full((n, 3), 0.5), settings).colors
+    torch.testing.assert_close(via.colors, first_view_colors(views, painted, joint, settings, 0.5))
 
 
 def test_the_first_view_leaves_splats_no_view_draws_alone_and_refuses_a_share_outside_0_1():

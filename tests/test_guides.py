@@ -1,6 +1,6 @@
-"""Guides between views (method/guides.py): earlier views' proposals reprojected into a view, nearest first (ink:
-earliest first),
-and the loop's guided proposals agreeing across views better than unguided ones."""
+"""Guides between views (method/guides.py): earlier views' proposals reprojected into a view, nearest first; for
+ink, what earlier views painted on the splats; and the loop's guided proposals agreeing across views better than
+unguided ones."""
 
 from __future__ import annotations
 
@@ -9,9 +9,10 @@ import pytest
 import torch
 from test_pipeline import TINY, away_camera, ring_cameras, sphere_scene, textured_style
 
-from dresg_addon.method.guides import view_guide
+from dresg_addon.method.color_solve import ColorSolveSettings, LinearViews, ViewsInTurn
+from dresg_addon.method.guides import PAINTED_SHARE, painted_guide, view_guide
 from dresg_addon.method.loop import stylize
-from dresg_addon.raster import render_scene
+from dresg_addon.raster import ColorOnlyRenderer, geometry_tensors, render_scene
 from dresg_addon.scene.warp import warp_to
 
 
@@ -49,13 +50,36 @@ def test_the_nearest_earlier_view_wins_and_what_no_earlier_view_sees_has_no_weig
     both &= near
     assert both.sum() > 20
     assert float(image[2][both].mean()) > 0.95 and float(image[0][both].mean()) < 0.05
-    # Ink: the earliest view first, so a mark is copied from the view that drew it, not from a neighbour's copy.
-    image, _ = view_guide(2, [0, 1], [red, blue, None], depths, alphas, cameras, 2.0, earliest_first=True)
-    assert float(image[0][both].mean()) > 0.95 and float(image[2][both].mean()) < 0.05
     assert float(weight[alphas[2] < 0.5].max()) == 0.0  # the background gets no guide
     away = [ring[0], away_camera()]
     depths, alphas = renders(scene, away)
     assert view_guide(1, [0], [red, None], depths, alphas, away, 2.0) is None  # it sees nothing of the sphere
+
+
+def test_a_painted_guide_shows_what_earlier_views_painted_where_their_splats_cover_the_pixel():
+    scene, cameras = sphere_scene(), ring_cameras(12)[:2]  # two neighbouring views of one sphere
+    renderers = [ColorOnlyRenderer(*geometry_tensors(scene), camera) for camera in cameras]
+    views = LinearViews([r.linear_map() for r in renderers], [r.background for r in renderers])
+    turn = ViewsInTurn(views, 0.5, ColorSolveSettings())
+    assert painted_guide(turn, 1, cameras[1], (16, 24), 4.0) is None  # nothing painted yet
+    stripes = torch.zeros(3, cameras[0].height, cameras[0].width)
+    stripes[:, :, (torch.arange(cameras[0].width) // 6) % 2 == 0] = 1.0  # white bands 6 px wide, on black
+    turn.paint(0, stripes)
+    guide = painted_guide(turn, 1, cameras[1], (cameras[1].height, cameras[1].width), 4.0)
+    assert guide is not None
+    image, weight = guide
+    assert image.shape == (3, cameras[1].height, cameras[1].width) and set(weight.unique().tolist()) <= {0.0, 4.0}
+    _, share = turn.painted_image(1)
+    share = share.reshape(cameras[1].height, cameras[1].width)
+    assert torch.equal(weight > 0, share >= PAINTED_SHARE) and int((weight > 0).sum()) > 50
+    # The guide is the painted splats' render: in view 0 itself it gives the stripes back where it is guided.
+    own, own_weight = painted_guide(turn, 0, cameras[0], (cameras[0].height, cameras[0].width), 4.0)
+    inner = (own_weight > 0) & (renderers[0].alpha > 0.99)
+    assert int(inner.sum()) > 50
+    drawn, wanted = own[0][inner], stripes[0][inner]
+    assert float(torch.corrcoef(torch.stack([drawn, wanted]))[0, 1]) > 0.7  # the stripes, as far as splats draw them
+    assert float(drawn.std()) > 0.25  # bands, not grey
+    assert painted_guide(turn, 1, cameras[1], (16, 24), 0.0) is None
 
 
 @pytest.mark.slow

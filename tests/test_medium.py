@@ -12,12 +12,14 @@ from dresg_addon.method.config import PRESETS, preset
 from dresg_addon.method.loop import medium_config, stylize
 from dresg_addon.method.medium import (
     INK_GUIDE_WEIGHT,
+    INK_PASSES,
     LUMINANCE,
     RAMP_BINS,
     InkRamp,
     read_medium,
     resolve_medium,
 )
+from dresg_addon.method.proposal.synth import SynthSettings, scale_ladder
 from dresg_addon.scene.demo import demo_style_image, line_drawing_image
 from dresg_addon.util.errors import ConfigError
 from dresg_addon.util.imageio import read_image
@@ -59,10 +61,20 @@ def test_resolve_medium_reads_auto_takes_the_others_as_given_and_refuses_the_unk
 def test_ink_sets_its_guides_and_light_and_paint_keeps_the_settings():
     said = []
     ink = medium_config(PRESETS["standard"], line_drawing_image(), said.append)
-    assert ink.proposal.medium == "ink" and len(said) == 1
+    assert ink.proposal.medium == "ink" and len(said) == 2 and "one stage" in said[1]
     assert ink.proposal.guide_weight == INK_GUIDE_WEIGHT and ink.proposal.scene_light == 0.0
+    # With the synth backend, one stage that runs its whole ladder, coarse to fine, at full strength.
+    assert (ink.schedule.stages, ink.schedule.updates_per_stage, ink.schedule.strength) == (1, INK_PASSES, "fixed-1")
+    assert len(scale_ladder(SynthSettings().max_levels, SynthSettings())) == INK_PASSES
+    sd15 = medium_config(PRESETS["standard"].with_(proposal="sd15", medium="ink"), line_drawing_image(), said.append)
+    assert sd15.schedule == PRESETS["standard"].schedule  # its stages are the scheduler's: left as they are
+    said.clear()
     paint = medium_config(PRESETS["standard"], demo_style_image(), said.append)
-    assert paint == PRESETS["standard"].with_(medium="paint") and len(said) == 1
+    assert paint == PRESETS["standard"].with_(medium="paint") and not said
+    for changes in ({"optimize_geometry": True}, {"color_fit": "adam"}):
+        with pytest.raises(ConfigError, match="ink medium paints the colours with the colour solve"):
+            medium_config(PRESETS["standard"].with_(medium="ink", **changes), line_drawing_image(), said.append)
+    assert medium_config(PRESETS["paper"], line_drawing_image(), said.append).proposal.medium == "paint"
     assert {name: config.proposal.medium for name, config in PRESETS.items()} == {
         "standard": "auto",
         "preview": "auto",
@@ -102,7 +114,7 @@ def test_an_ink_run_says_so_and_puts_every_splat_on_the_drawings_ramp():
     scene = sphere_scene(n=300)
     result = stylize(scene, ring_cameras(3), style, TINY.with_(medium="auto", post_steps=0), messages=said.append)
     assert any("ink on paper" in line for line in said)
-    assert result.log[0]["medium"] == "ink"
+    assert result.log[0]["medium"] == "ink" and [entry["stage"] for entry in result.log] == [1]  # one stage
     colors = torch.from_numpy(result.scene.sh_dc * 0.28209479177387814 + 0.5).float()
     seen = torch.from_numpy(np.abs(result.scene.sh_dc - scene.sh_dc).max(1) > 0)
     assert int(seen.sum()) > 100

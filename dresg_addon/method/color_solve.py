@@ -47,6 +47,7 @@ BACKTRACKS = 6  # halvings of the projected step before a round gives up
 COVERAGE_FLOOR = 1e-3  # a pixel's coverage below this counts as this in the view average (no division by 0)
 WEIGHT_FLOOR = 1e-9  # a splat with less summed weight over all views is one no view draws
 BEST_VIEW_ROUNDS = 3  # rounds of each view's own solve in the best views (within 1% of 6 on the bonsai)
+PAINT_ROUNDS = 20  # each view's solve when the views paint in turn: unanchored, lines as sharp as the splats allow
 
 
 @dataclass(frozen=True)
@@ -414,32 +415,75 @@ def best_view_colors(
     return torch.where(total > WEIGHT_FLOOR, blended.float(), joint.float()).clamp(0.0, 1.0)
 
 
+def first_views(drawn: torch.Tensor, share: float) -> torch.Tensor:  # [V, N, 1] -> [N] long
+    """Each splat's first view: the earliest v (in the views' order) with d_vi >= ``share`` x max_u d_ui, d_vi how
+    much view v draws splat i (``LinearViews.drawn_weights``); -1 for a splat no view draws."""
+    if not (math.isfinite(share) and 0.0 < share <= 1.0):
+        raise ConfigError(f"colour solver: the first view's share must be in (0, 1] (got {share})")
+    drawn = drawn.reshape(drawn.shape[0], -1)
+    enough = (drawn >= share * drawn.amax(0, keepdim=True)) & (drawn > WEIGHT_FLOOR)
+    return torch.where(enough.any(0), enough.to(torch.uint8).argmax(0), -1)
+
+
+class ViewsInTurn:
+    """The views painting the splats in turn: each splat is painted once, by its first view (:func:`first_views`),
+    which solves its own target alone (bounded least squares, unanchored, ``rounds`` rounds) with the splats that
+    earlier views painted held at their colours, and keeps the colours of the splats it is first to draw.
+
+    Texturing a mesh from photos colours each face from one view instead of blending them all (Waechter, Moehrle
+    and Goesele 2014); here the views also take turns, so a view sees, through :meth:`painted_image`, what the
+    earlier ones painted exactly as the splats will show it, and can be guided to continue it. A line drawing's
+    lines then line up across views to the width of a line; blended, or copied from view to view by reprojecting
+    images, they blur into grey or streaks (bench/README.md, "Ink").
+    """
+
+    def __init__(self, views: LinearViews, share: float, settings: ColorSolveSettings, rounds: int = PAINT_ROUNDS):
+        self.views = views
+        self.first = first_views(views.drawn_weights, share)
+        count = views.energy.numel()
+        self.colors = torch.zeros(count, 3)
+        self.painted = torch.zeros(count, dtype=torch.bool)
+        self.settings = replace(settings, anchor=0.0, max_rounds=rounds, best_views=0.0, first_view=0.0)
+
+    def painted_image(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:  # -> [P, 3], [P]
+        """What the painted splats show in ``view``: their colour at each pixel (0 where none is drawn) and the
+        share of the pixel's coverage they make."""
+        m = self.views.maps[view].only_columns(self.painted)
+        drawn = m.matvec(torch.ones(self.colors.shape[0], 1))[:, 0]
+        image = m.matvec(self.colors) / drawn.clamp_min(COVERAGE_FLOOR)[:, None]
+        coverage = self.views.coverages[view][:, 0]
+        share = torch.where(coverage > COVERAGE_FLOOR, drawn / coverage.clamp_min(COVERAGE_FLOOR), 0.0)
+        return image.clamp(0.0, 1.0), share.clamp(0.0, 1.0)
+
+    def paint(self, view: int, target: torch.Tensor) -> None:  # target: [3, H, W] or [P, 3]
+        """``view`` solved alone for its ``target`` with the painted splats held; its first splats keep the result."""
+        (target,) = _flat_targets([target], 1)
+        m = self.views.maps[view]
+        held = m.only_columns(self.painted)
+        free = LinearViews([m.only_columns(~self.painted)], [self.views.constants[view] + held.matvec(self.colors)])
+        start = view_average_colors(free, [target], torch.full_like(self.colors, 0.5))
+        colors = projected_solve(free, [target], start, self.settings).colors
+        mine = self.first == view
+        self.colors[mine] = colors[mine].float()
+        self.painted |= mine
+
+
 def first_view_colors(
     views: LinearViews,
     targets: Sequence[torch.Tensor],  # V x [P, 3]
     joint: torch.Tensor,  # [N, 3]: the joint fit
     settings: ColorSolveSettings,
     share: float,
-    each_view: Callable[[int], None] | None = None,  # as single_view_solutions takes it
+    each_view: Callable[[int], None] | None = None,  # (views painted so far) after each; it may raise to cancel
 ) -> torch.Tensor:  # [N, 3] in [0, 1]
-    """Each splat coloured from the earliest view (in the views' order) that draws it at least ``share`` of the
-    most any view does: c_i = c_vi for the first v with d_vi >= share x max_u d_ui, c_v view v's own solution
-    anchored to the joint fit (:func:`single_view_solutions`), d_vi as :func:`best_view_colors` has it. A splat
-    no view draws keeps its joint colour.
-
-    The views are painted in that order and each copies what the earlier ones drew (the guides), so the earliest
-    view's solution is the one the others copied: neighbouring splats take one view's marks, which line up,
-    where the best view of each (:func:`best_view_colors`) mixes views whose marks are a few pixels apart (a line
-    drawing's hatching comes out grey; bench/README.md, "Ink").
-    """
-    if not (math.isfinite(share) and 0.0 < share <= 1.0):
-        raise ConfigError(f"colour solver: the first view's share must be in (0, 1] (got {share})")
-    alone = single_view_solutions(views, targets, joint, replace(settings, max_rounds=BEST_VIEW_ROUNDS), each_view)
-    drawn = views.drawn_weights  # [V, N, 1]
-    enough = (drawn >= share * drawn.amax(0, keepdim=True)) & (drawn > WEIGHT_FLOOR)
-    first = enough.to(torch.uint8).argmax(0)  # [N, 1]: the first view that draws it enough (0 when none does)
-    chosen = torch.stack(alone).gather(0, first[None].expand(1, -1, 3))[0]
-    return torch.where(enough.any(0), chosen.float(), joint.float()).clamp(0.0, 1.0)
+    """Each splat coloured by its first view, the views painting in turn (:class:`ViewsInTurn`); a splat no view
+    draws keeps its joint colour."""
+    turn = ViewsInTurn(views, share, settings)
+    for view, target in enumerate(targets):
+        turn.paint(view, target)
+        if each_view is not None:
+            each_view(view + 1)
+    return torch.where(turn.painted[:, None], turn.colors, joint.float()).clamp(0.0, 1.0)
 
 
 def solve_colors(

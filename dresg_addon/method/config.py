@@ -98,8 +98,8 @@ class ProposalSettings:
     # agree are what the fit keeps (bonsai x Starry Night, preview: the capture's texture kept 0.27 -> 0.22)
     guide_weight: float = 16.0
     # What the painting is: "paint", "ink" (a pen-and-ink drawing: its lines kept across views, method/medium.py),
-    # or "auto", read from its colours (light ground, dark neutral marks: ink). Ink runs its own guides, no scene
-    # light and each splat from the first view that draws it, so it overrides guide_weight and scene_light.
+    # or "auto", read from its colours (light ground, dark neutral marks: ink). Ink draws the views in turn, with no
+    # scene light, in one stage with the synth backend: it overrides guide_weight, scene_light and the schedule.
     medium: str = "paint"
     latent_lr: float = 0.05  # Adam on the latent (sd15 only)
 

@@ -38,6 +38,7 @@ from ..util.machine import peak_rss_mb
 from . import views as view_selection
 from .backends import LIT_SCENE, BackendSettings, backend, synth_light_weight, synth_stroke_sigma
 from .bookkeeping import Progress, RunHooks, RunRecord, StageUpdate, prior_costs, run_id
+from .color_solve import ViewsInTurn
 from .color_transfer import covariance_color_transform, coverage_weight, luminance
 from .config import StylizeConfig, check_run_settings
 from .fitting import (
@@ -51,8 +52,8 @@ from .fitting import (
     seen_gaussians,
     splat_footprint,
 )
-from .guides import view_guide
-from .medium import INK_FIRST_VIEW, INK_GUIDE_WEIGHT, InkRamp, resolve_medium
+from .guides import painted_guide, view_guide
+from .medium import INK_FIRST_VIEW, INK_GUIDE_WEIGHT, INK_PASSES, InkRamp, resolve_medium
 from .optim import make_fit_optimizer, scene_extent
 from .schedule import Stage, stage_gammas, stage_timesteps
 from .style_distance import sliced_wasserstein_patches
@@ -167,9 +168,18 @@ def medium_config(config: StylizeConfig, style_rgb: np.ndarray, say: Callable[[s
     medium, note = resolve_medium(config.proposal.medium, style_rgb)
     if note:
         say(note)
-    if medium == "ink":
-        return config.with_(medium="ink", guide_weight=INK_GUIDE_WEIGHT, scene_light=0.0)
-    return config.with_(medium="paint")
+    if medium == "paint":
+        return config.with_(medium="paint")
+    if not config.fit.solves_colors():
+        raise ConfigError(
+            "the ink medium paints the colours with the colour solve: use a colour-only preset with --color-fit "
+            "solve (no --geometry), or --medium paint"
+        )
+    ink = config.with_(medium="ink", guide_weight=INK_GUIDE_WEIGHT, scene_light=0.0)
+    if config.proposal.backend != "synth":
+        return ink
+    say(f"ink: one stage of {INK_PASSES} synthesis passes, coarse to fine, the views drawing in turn")
+    return ink.with_(stages=1, updates_per_stage=INK_PASSES, schedule="fixed-1")
 
 
 def _proposal_backend(config: StylizeConfig, device, scene_brightness: float = 1.0):
@@ -507,7 +517,10 @@ class Stylization:
         self.work = work = _StageWork(time.perf_counter())
         self.backend.prepare_stage(self.states, self.style, self.contents, self.coverages)
         guided = self.backend.takes_guides and self.config.proposal.guide_weight > 0 and len(self.cameras) > 1
-        if guided:  # views in order, each guided by the earlier ones' proposals seen from it (guides.py)
+        # Ink: the views paint the splats in turn, each guided by what the earlier ones painted (guides.py);
+        # paint: each view guided by the earlier views' proposals reprojected into it.
+        turn = ViewsInTurn(self.solver.views, INK_FIRST_VIEW, self.solver.settings) if guided and self.ramp else None
+        if guided and turn is None:
             depths = [self.renderer.depth(v, self.state) for v in range(len(self.cameras))]
             done: list[torch.Tensor | None] = [None] * len(self.cameras)
         views = len(self.cameras)
@@ -515,23 +528,20 @@ class Stylization:
             self.hooks.check_cancel()
             message = f"painting view {i + 1}/{views} ({self.names[i]})"
             self.hooks.report(stage.index, i, views, "proposal", float("nan"), message)
-            guide = None
-            if guided:
-                guide = view_guide(
-                    i,
-                    list(range(i)),
-                    done,
-                    depths,
-                    self.alphas,
-                    self.cameras,
-                    self.config.proposal.guide_weight,
-                    earliest_first=self.ramp is not None,
-                )
+            guide, weight = None, self.config.proposal.guide_weight
+            if turn is not None:
+                guide = painted_guide(turn, i, self.renderer.fast[i].camera, self.size, weight)
+            elif guided:
+                guide = view_guide(i, list(range(i)), done, depths, self.alphas, self.cameras, weight)
             kwargs = {"guide": guide} if guide is not None else {}
             self.states[i], energies = self.backend.propose(
                 self.states[i], stage.timesteps, self.style, self.contents[i], self.coverages[i], **kwargs
             )
-            if guided:
+            if turn is not None:
+                proposal = self.backend.decode(self.states[i]).detach().float().cpu()
+                camera = self.renderer.fast[i].camera
+                turn.paint(i, _resize(proposal, camera.height, camera.width))
+            elif guided:
                 done[i] = self.backend.decode(self.states[i]).detach().float()
             work.energies.append(energies[-1])
         work.proposal_seconds = time.perf_counter() - work.started

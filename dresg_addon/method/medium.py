@@ -4,11 +4,15 @@ A pen-and-ink drawing is lines 1-3 px wide on a light ground. Painted the way a 
 comes out grey: each view places its lines in its own places, a few pixels off those of its neighbours, and
 the fit averages them (bench/README.md, "The line drawing: where its hatching goes"). What keeps them:
 
-- guides from the earliest view first (:func:`~.guides.view_guide`, ``order="earliest"``), weighing
-  :data:`INK_GUIDE_WEIGHT`: a line is copied once from the view that drew it, not along a chain of neighbours,
-  each copy resampled again;
-- each splat coloured from the earliest view that draws it at least :data:`INK_FIRST_VIEW` of the most any view
-  does (``color_solve.first_view_colors``), not from a blend of the views, so large regions take one view's lines;
+- the views draw in turn (``color_solve.ViewsInTurn``): each splat is painted once, by the earliest view that
+  draws it at least :data:`INK_FIRST_VIEW` of the most any view does, solved from that view alone with what
+  earlier views painted held; each later view is guided, weighing :data:`INK_GUIDE_WEIGHT`, by what the earlier
+  ones painted as the splats show it (``guides.painted_guide``), so it continues their lines where it sees
+  their surfaces and draws its own only where it is first. Copied between views as reprojected images
+  instead, lines seen at a grazing angle came out as streaks;
+- one stage of :data:`INK_PASSES` synthesis passes, the synth backend's whole ladder from coarse to fine: a
+  stage that starts from the last one's render redraws lines from what the splats blurred, and over stages
+  they became spots (bench/README.md, "Ink drawn in turn");
 - no scene light held (``scene_light`` 0): the scene's shading would grey the paper;
 - every colour on the drawing's own ink-to-paper ramp (:class:`InkRamp`): a splat solved from one view may take
   any colour the other views cannot see, and one that is not the ink's or the paper's shows as a coloured speck.
@@ -35,8 +39,9 @@ MEDIA = ("auto", "paint", "ink")
 INK_CHROMA = 0.15  # 90th percentile of a pixel's max - min over R, G, B, at most
 PAPER_LUMINANCE, INK_PAPER = 0.7, 0.4  # at least this share of the pixels this light
 INK_LUMINANCE, INK_DARK = 0.35, 0.03  # at least this share this dark
-INK_GUIDE_WEIGHT = 256.0  # a guided view keeps what the earliest view drew (16 for paint)
+INK_GUIDE_WEIGHT = 256.0  # a guided view keeps what the earlier views painted (16 for paint)
 INK_FIRST_VIEW = 0.5  # a splat's colour from the earliest view that draws it at least half the most any view does
+INK_PASSES = 12  # one synthesis pass per rung of the synth ladder (3 levels x 4 patch sizes: synth.scale_ladder)
 RAMP_BINS = 64
 # What each medium means, for the CLI's help and the panel's menu: (label, description).
 MEDIUM_LABELS = {
@@ -47,8 +52,8 @@ MEDIUM_LABELS = {
     "paint": ("Paint", "A painting: marks and regions from each view, held to the scene's light"),
     "ink": (
         "Ink",
-        "A pen-and-ink drawing: each line copied from the first view that drew it, no scene light, the drawing's "
-        "own ink and paper colours",
+        "A pen-and-ink drawing: the views draw in turn, each continuing the lines of the ones before, in one "
+        "stage; no scene light, the drawing's own ink and paper colours",
     ),
 }
 LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709, as color_transfer.LUMINANCE
@@ -90,8 +95,8 @@ def resolve_medium(medium: str, style_rgb: np.ndarray) -> tuple[str, str | None]
     if not reading.ink:
         return "paint", None
     return "ink", (
-        f"the painting reads as ink on paper ({reading.describe()}): painting it as ink, each line from the first "
-        'view that drew it and no scene light held (medium "paint" paints it as a painting)'
+        f"the painting reads as ink on paper ({reading.describe()}): drawing it as ink, the views in turn and no "
+        'scene light held (medium "paint" paints it as a painting)'
     )
 
 

@@ -558,6 +558,24 @@ class SparseColorMap:
         )
         return torch.sparse.mm(squared, pixels.contiguous())
 
+    def only_columns(self, keep: torch.Tensor) -> SparseColorMap:  # keep: [N] bool
+        """The map with every column but ``keep`` weighing 0: the image those Gaussians' colours draw, the others'
+        samples left out (not skipped over: the transmittance each sample has stays as the full render's)."""
+        out = object.__new__(SparseColorMap)
+        out.shape = self.shape
+        out._gauss = self._gauss
+        out._weight = self._weight * keep[self._gauss].to(self._weight.dtype)
+        rows_t = torch.repeat_interleave(keep, torch.diff(self.matrix_t.crow_indices().long()))
+        out.matrix = self._with_values(self.matrix, out._weight)
+        out.matrix_t = self._with_values(self.matrix_t, self.matrix_t.values() * rows_t.to(self._weight.dtype))
+        return out
+
+    @staticmethod
+    def _with_values(matrix: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+        return torch.sparse_csr_tensor(
+            matrix.crow_indices(), matrix.col_indices(), values, matrix.shape, check_invariants=False
+        )
+
 
 class ColorOnlyRenderer:
     """Colour-only fast path for frozen geometry.
