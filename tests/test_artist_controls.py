@@ -333,6 +333,18 @@ def test_the_note_suggests_the_smallest_stroke_size_that_reaches_the_splats():
     assert stroke_size_note(None, config) is None
 
 
+def test_for_ink_the_note_weighs_the_splats_against_the_drawings_lines_and_suggests_no_stroke_size():
+    ink = StylizeConfig().with_(medium="ink", stroke_size=2.0)
+    note = stroke_size_note(3.0, ink, ink_line=1.0)  # lines 2 px wide at Stroke Size 2
+    assert note == (
+        "the scene's splats are about 3 px wide at the fit size, wider than the drawing's lines at Stroke Size 2 "
+        "(2 px): they will show its tones and hatching rather than single lines"
+    )
+    assert stroke_size_note(1.9, ink, ink_line=1.0) is None
+    assert stroke_size_note(3.0, ink, fit_scale=2.0, ink_line=1.0) is None  # lines 4 fit pixels wide
+    assert "the strokes at" in stroke_size_note(3.5 * STROKE, ink)  # no line width: the strokes' scale
+
+
 @pytest.mark.parametrize(("sigma_px", "says"), [(2.5 * STROKE, True), (0.5 * STROKE, False)])
 def test_a_run_says_when_the_splats_are_wider_than_the_strokes(sigma_px, says):
     messages: list[str] = []

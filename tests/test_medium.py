@@ -16,6 +16,7 @@ from dresg_addon.method.medium import (
     LUMINANCE,
     RAMP_BINS,
     InkRamp,
+    line_width,
     read_medium,
     resolve_medium,
 )
@@ -85,6 +86,16 @@ def test_ink_sets_its_guides_and_light_and_paint_keeps_the_settings():
     assert "medium" not in paint.run_values() and ink.run_values()["medium"] == "ink"
 
 
+def test_a_drawings_line_width_is_measured_in_its_own_pixels():
+    for width in (1, 2, 4):
+        image = np.ones((60, 80, 3), np.float32)
+        for start in range(5, 80 - width, 12):  # vertical lines, 12 px apart
+            image[:, start : start + width] = 0.05
+        assert line_width(image) == pytest.approx(width, rel=0.05)
+    assert line_width(np.ones((8, 8, 3), np.float32)) == 0.0  # no ink
+    assert 0.5 < line_width(line_drawing_image()) < 1.5  # the generated drawing's pen: about a pixel
+
+
 def test_the_ink_ramp_keeps_the_drawings_colours_at_their_luminance():
     style = drawing()
     ramp = InkRamp(style)
@@ -114,6 +125,7 @@ def test_an_ink_run_says_so_and_puts_every_splat_on_the_drawings_ramp():
     scene = sphere_scene(n=300)
     result = stylize(scene, ring_cameras(3), style, TINY.with_(medium="auto", post_steps=0), messages=said.append)
     assert any("ink on paper" in line for line in said)
+    assert any("wider than the drawing's lines" in line for line in said)  # 1.7 px splats, 1.5 px lines
     assert result.log[0]["medium"] == "ink" and [entry["stage"] for entry in result.log] == [1]  # one stage
     colors = torch.from_numpy(result.scene.sh_dc * 0.28209479177387814 + 0.5).float()
     seen = torch.from_numpy(np.abs(result.scene.sh_dc - scene.sh_dc).max(1) > 0)

@@ -53,7 +53,7 @@ from .fitting import (
     splat_footprint,
 )
 from .guides import painted_guide, view_guide
-from .medium import INK_FIRST_VIEW, INK_GUIDE_WEIGHT, INK_PASSES, InkRamp, resolve_medium
+from .medium import INK_FIRST_VIEW, INK_GUIDE_WEIGHT, INK_PASSES, InkRamp, line_width, resolve_medium
 from .optim import make_fit_optimizer, scene_extent
 from .schedule import Stage, stage_gammas, stage_timesteps
 from .style_distance import sliced_wasserstein_patches
@@ -230,22 +230,36 @@ def _pixels(value: float) -> str:
     return f"{value:.1f}".rstrip("0").rstrip(".")
 
 
-def stroke_size_note(footprint: float | None, config: StylizeConfig, fit_scale: float = 1.0) -> str | None:
+def stroke_size_note(
+    footprint: float | None, config: StylizeConfig, fit_scale: float = 1.0, ink_line: float | None = None
+) -> str | None:
     """One line for the user when the splats are wider than the strokes (synth backend), else None.
 
     ``footprint`` is :func:`~.fitting.splat_footprint` (pixels at the fit size); the strokes' scale is
     :func:`stroke_sigma` (proposal pixels) x ``fit_scale`` (fit pixels per proposal pixel). The line suggests the
     smallest of :data:`STROKE_SIZES` whose strokes reach the splats, or says that even the largest does not.
+    For ink, ``ink_line`` (the drawing's :func:`~.medium.line_width` in proposal pixels at Stroke Size 1) is the
+    scale instead, and no Stroke Size is suggested: on the demo scene larger ones drew the lines as spots.
     """
     if footprint is None or config.proposal.backend != "synth":
         return None
+    size = config.proposal.stroke_size
+    if config.proposal.medium == "ink" and ink_line is not None:
+        lines = ink_line * size * fit_scale
+        if footprint <= lines:
+            return None
+        return (
+            f"the scene's splats are about {_pixels(footprint)} px wide at the fit size, wider than the drawing's "
+            f"lines at Stroke Size {size:g} ({_pixels(lines)} px): they will show its tones and hatching rather "
+            "than single lines"
+        )
     per_size = stroke_sigma(config.with_(stroke_size=1.0)) * fit_scale  # stroke pixels at Stroke Size 1
-    strokes = per_size * config.proposal.stroke_size
+    strokes = per_size * size
     if footprint <= strokes:
         return None
     line = (
         f"the scene's splats are about {_pixels(footprint)} px wide at the fit size, wider than the strokes at "
-        f"Stroke Size {config.proposal.stroke_size:g} ({_pixels(strokes)} px): they will show the painting's colours and "
+        f"Stroke Size {size:g} ({_pixels(strokes)} px): they will show the painting's colours and "
         "regions more than its marks; "
     )
     larger = [size for size in STROKE_SIZES if size * per_size >= footprint]
@@ -447,7 +461,10 @@ class Stylization:
         self.footprint = splat_footprint(self.renderer)
         proposal_pixels = self.config.proposal.width * self.config.proposal.height
         fit_scale = float(np.mean([math.sqrt(c.width * c.height / proposal_pixels) for c in self.cameras]))
-        note = stroke_size_note(self.footprint, self.config, fit_scale)
+        ink_line = None
+        if self.config.proposal.medium == "ink":  # the drawing's lines in proposal pixels at Stroke Size 1
+            ink_line = line_width(self.style_rgb) * self.config.proposal.height / self.style_rgb.shape[0]
+        note = stroke_size_note(self.footprint, self.config, fit_scale, ink_line)
         if note:
             self.hooks.say(note)
 

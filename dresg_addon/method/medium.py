@@ -100,6 +100,15 @@ def resolve_medium(medium: str, style_rgb: np.ndarray) -> tuple[str, str | None]
     )
 
 
+def line_width(style_rgb: np.ndarray) -> float:  # [H, W, 3] in [0, 1] -> pixels of the drawing
+    """The drawing's typical line width: 2 x its ink pixels (darker than mid-grey) over the ink-paper transitions
+    between horizontal and vertical neighbours (a line w px wide and L long has w L pixels and about 2 L
+    transitions); 0 without ink."""
+    ink = np.asarray(style_rgb, dtype=np.float64) @ np.asarray(LUMINANCE) < 0.5
+    transitions = int((ink[1:] != ink[:-1]).sum() + (ink[:, 1:] != ink[:, :-1]).sum())
+    return 2.0 * float(ink.sum()) / transitions if transitions else 0.0
+
+
 class InkRamp:
     """The drawing's colours as a function of luminance: the mean colour of its pixels in each of
     :data:`RAMP_BINS` luminance bins, linear between them. :meth:`apply` puts a colour on the ramp at its
