@@ -392,6 +392,9 @@ def test_views_in_turn_hold_what_earlier_views_painted_and_reach_targets_that_ag
     via = solve_colors(views, painted, torch.full((n, 3), 0.5), replace(settings, first_view=0.5, best_views=4.0))
     joint = solve_colors(views, painted, torch.full((n, 3), 0.5), settings).colors
     torch.testing.assert_close(via.colors, first_view_colors(views, painted, joint, settings, 0.5))
+    # A painting already made of these targets (ink's proposals) is taken as it is, not made again.
+    taken = solve_colors(views, painted, torch.full((n, 3), 0.5), replace(settings, first_view=0.5), painted=turn)
+    torch.testing.assert_close(taken.colors, via.colors, atol=1e-6, rtol=0)
 
 
 def test_the_first_view_leaves_splats_no_view_draws_alone_and_refuses_a_share_outside_0_1():

@@ -467,6 +467,10 @@ class ViewsInTurn:
         self.colors[mine] = colors[mine].float()
         self.painted |= mine
 
+    def over(self, joint: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [N, 3] in [0, 1]
+        """The painted colours, and ``joint``'s for the splats not painted (yet, or ever: no view draws them)."""
+        return torch.where(self.painted[:, None], self.colors, joint.float()).clamp(0.0, 1.0)
+
 
 def first_view_colors(
     views: LinearViews,
@@ -483,7 +487,7 @@ def first_view_colors(
         turn.paint(view, target)
         if each_view is not None:
             each_view(view + 1)
-    return torch.where(turn.painted[:, None], turn.colors, joint.float()).clamp(0.0, 1.0)
+    return turn.over(joint)
 
 
 def solve_colors(
@@ -494,6 +498,7 @@ def solve_colors(
     each_round: Callable[[int, float, torch.Tensor], None] | None = None,  # (round, objective, colours) after each
     optimum: bool = False,
     each_view: Callable[[int], None] | None = None,  # (views solved alone so far) during the best views
+    painted: ViewsInTurn | None = None,  # the first views' painting already made of these targets, to take
 ) -> ColorSolveResult:
     """The fitted colours in [0, 1]: bounded least squares, anchored to ``start`` when ``settings.anchor`` > 0, then
     with ``settings.first_view`` > 0 each splat taken from the earliest view that draws it well
@@ -503,8 +508,10 @@ def solve_colors(
     ``least_squares`` of the result holds the plain bounded least-squares optimum, the joint optimum the log
     reports: the least-squares solve itself when it is unanchored, else, only when ``optimum`` is asked for,
     a second solve without the anchor, warm-started from the fit. ``optimum`` also measures how far the views
-    disagree at that optimum (``view_disagreement``). ``each_round`` is called after every round
-    of the fit, ``each_view`` after each view's own solve of the best views (progress; either may raise to cancel).
+    disagree at that optimum (``view_disagreement``). ``painted``, the views' painting in turn already made of these
+    targets (ink's proposals), gives the first views' colours without painting again. ``each_round`` is called after
+    every round of the fit, ``each_view`` after each view's own solve of the best views (progress; either may raise to
+    cancel).
     """
     flat = _flat_targets(targets, len(views))
     anchor = start.detach().float().clamp(0.0, 1.0)
@@ -518,7 +525,9 @@ def solve_colors(
         result.disagreement = view_disagreement(views, flat, least_squares, settings)
         result.optimum_seconds = time.perf_counter() - started
     result.least_squares = least_squares
-    if settings.first_view > 0.0:
+    if settings.first_view > 0.0 and painted is not None:
+        result.colors = painted.over(result.colors)
+    elif settings.first_view > 0.0:
         result.colors = first_view_colors(views, flat, result.colors, settings, settings.first_view, each_view)
     elif settings.best_views > 0.0:
         result.colors = best_view_colors(views, flat, result.colors, settings, settings.best_views, each_view)

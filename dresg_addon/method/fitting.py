@@ -31,7 +31,14 @@ from ..scene.camera import Camera
 from ..scene.gaussians import GaussianScene
 from ..util.errors import CameraError, NumericalError
 from . import losses, pcgrad
-from .color_solve import ColorSolveResult, ColorSolveSettings, LinearViews, solve_colors, view_average_colors
+from .color_solve import (
+    ColorSolveResult,
+    ColorSolveSettings,
+    LinearViews,
+    ViewsInTurn,
+    solve_colors,
+    view_average_colors,
+)
 from .optim import GeometryBounds, check_finite_gradients, project_geometry_offsets_
 
 
@@ -343,16 +350,22 @@ class BoundedColorFit:
         self.recolor = recolor
 
     def solve(
-        self, targets: Sequence[torch.Tensor], each_round=None, start: torch.Tensor | None = None, each_view=None
+        self,
+        targets: Sequence[torch.Tensor],
+        each_round=None,
+        start: torch.Tensor | None = None,
+        each_view=None,
+        painted: ViewsInTurn | None = None,
     ) -> ColorSolveResult:  # V x [3, H, W]
         """Solve from ``start`` (default: with ``from_views`` each splat's view average of the targets, else the
         current colours; the anchor holds to it), write the colours (through ``recolor``, when given) into the fit
-        state; ``optimum``: also the plain least-squares optimum."""
+        state; ``optimum``: also the plain least-squares optimum. ``painted``: as :func:`.color_solve.solve_colors`
+        takes it."""
         if start is None:
             current = self.fit.colors.detach()
             start = view_average_colors(self.views, targets, current) if self.from_views else current
         start = start.detach()
-        result = solve_colors(self.views, targets, start, self.settings, each_round, self.optimum, each_view)
+        result = solve_colors(self.views, targets, start, self.settings, each_round, self.optimum, each_view, painted)
         if self.recolor is not None:
             result.colors = self.recolor(result.colors)
         with torch.no_grad():

@@ -293,6 +293,7 @@ class _StageWork:
     images: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     losses: list[float] = field(default_factory=list)
     renders: list = field(default_factory=list)  # the views before the fit, then after it
+    painted: ViewsInTurn | None = None  # ink: the views' painting in turn of the stage's proposals
     closure: dict = field(default_factory=dict)  # target gap, fit residual, optimum, share closed, movement
     fitted_seconds: float = 0.0
     distance: float = 0.0
@@ -561,6 +562,8 @@ class Stylization:
             elif guided:
                 done[i] = self.backend.decode(self.states[i]).detach().float()
             work.energies.append(energies[-1])
+        if turn is not None and self.gammas[stage.index - 1] == 1.0:  # the targets are the proposals: already painted
+            work.painted = turn
         work.proposal_seconds = time.perf_counter() - work.started
 
     def residual_targets(self, stage: Stage) -> list[torch.Tensor]:
@@ -616,14 +619,16 @@ class Stylization:
                 self.hooks.check_cancel()
 
             def each_view(done: int) -> None:
-                message = f"each splat from its best views: {done}/{len(targets)} views solved alone"
+                how = "the views painting in turn" if self.ramp is not None else "each splat from its best views"
+                message = f"{how}: {done}/{len(targets)} views solved alone"
                 self.hooks.report(stage, solved_rounds[0], rounds, phase, float("nan"), message)
                 self.hooks.check_cancel()
 
             self.hooks.report(stage, 0, rounds, phase, float("nan"), "colour solve starting")
             self.hooks.check_cancel()
             try:
-                result = self.solver.solve(targets, each_round, start, each_view)
+                painted = self.work.painted if phase == "fit" else None
+                result = self.solver.solve(targets, each_round, start, each_view, painted)
             except NumericalError as error:
                 raise NumericalError(
                     f"{error} at {where.rsplit(',', 1)[0]}, so the run stopped{self.record.kept_note()}"
