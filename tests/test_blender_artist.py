@@ -178,6 +178,17 @@ def test_stroke_size_paint_scene_light_and_medium_reach_the_run(addon, tmp_path)
     assert panel.index("stroke_size") < panel.index("scene_weight") < panel.index("scene_light") < panel.index("medium")
     assert panel.index("medium") < panel.index("preset")
 
+    def active(prop: str) -> bool:  # the row's last `active` before the property is drawn in it
+        calls = _drawn(addon.ui.panels.DRESG_PT_style)
+        at = next(i for i, (name, args, _) in enumerate(calls) if name == "prop" and args[1] == prop)
+        return calls[at - 1] != ("=active", (False,), {})
+
+    assert all(active(prop) for prop in ("stages", "schedule", "optimize_geometry", "scene_light"))
+    settings.medium = "ink"  # drawn in one stage of its own, colours only, with no scene light
+    assert not any(active(prop) for prop in ("stages", "schedule", "optimize_geometry", "scene_light"))
+    settings.proposal = "sd15"  # its stages are the scheduler's
+    assert active("stages") and active("schedule") and not active("optimize_geometry")
+
 
 def _quick_selection_scene(tmp_path):
     """300 splats imported, 3 orbit cameras and a one-stage preview at 32x24: (the object, the settings)."""
@@ -203,7 +214,7 @@ def _drawn(panel) -> list:
             return call
 
         def __setattr__(self, name, value):
-            pass
+            calls.append(("=" + name, (value,), {}))
 
     panel.draw(types.SimpleNamespace(layout=Layout()), bpy.context)
     return calls

@@ -164,15 +164,22 @@ class DRESG_PT_style(ChildPanel, bpy.types.Panel):
         layout.prop(settings, "preset")
         layout.prop(settings, "proposal")
         _draw_backend_notes(layout, context, settings)
-        layout.prop(settings, "stages")
+        ink_stage = settings.medium == "ink" and settings.proposal == "synth"  # ink draws in one stage of its own
+        stages = layout.row()
+        stages.active = not ink_stage
+        stages.prop(settings, "stages")
         steps = layout.row()
         steps.active = settings.optimize_geometry  # colour-only fits are solved, not stepped
         steps.prop(settings, "fit_steps")
         column = layout.column(align=True)
         column.prop(settings, "proposal_width", text="Resolution X")
         column.prop(settings, "proposal_height", text="Y")
-        layout.prop(settings, "schedule")
-        layout.prop(settings, "optimize_geometry")
+        schedule = layout.row()
+        schedule.active = not ink_stage
+        schedule.prop(settings, "schedule")
+        geometry = layout.row()
+        geometry.active = settings.medium != "ink"  # ink paints colours only
+        geometry.prop(settings, "optimize_geometry")
 
 
 class DRESG_PT_style_advanced(ChildPanel, bpy.types.Panel):
