@@ -332,6 +332,19 @@ def test_best_views_leave_splats_no_view_draws_alone_and_refuse_a_sharpness_that
         ColorSolveSettings(best_views=-1.0)
 
 
+def test_a_map_of_only_some_columns_draws_those_splats_and_no_others(small):
+    _, views = small
+    m = views.maps[0]
+    n = m.shape[1]
+    keep = torch.from_numpy(np.random.default_rng(4).uniform(size=n) < 0.5)
+    colors = torch.rand(n, 3, generator=torch.Generator().manual_seed(5))
+    pixels = torch.rand(m.shape[0], 3, generator=torch.Generator().manual_seed(6))
+    only = m.only_columns(keep)
+    torch.testing.assert_close(only.matvec(colors), m.matvec(colors * keep[:, None]))
+    torch.testing.assert_close(only.rmatvec(pixels), m.rmatvec(pixels) * keep[:, None])
+    torch.testing.assert_close(only.column_energy(), m.column_energy() * keep)
+
+
 def test_each_splats_first_view_is_the_earliest_that_draws_it_well(small):
     from dresg_addon.method.color_solve import first_views
 
