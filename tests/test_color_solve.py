@@ -428,6 +428,26 @@ def test_the_first_view_leaves_splats_no_view_draws_alone_and_refuses_a_share_ou
         ColorSolveSettings(first_view=2.0)
 
 
+def test_views_in_turn_stay_finite_with_a_view_that_sees_nothing_and_targets_at_the_box():
+    from dresg_addon.method.color_solve import ViewsInTurn
+
+    scene = sphere_scene(n=80, seed=3)
+    views = linear_views(scene, [away_camera(24, 16), *ring_cameras(2, width=24, height=16)])
+    turn = ViewsInTurn(views, 0.5, ColorSolveSettings())
+    assert not bool((turn.first == 0).any())  # the first view draws nothing: it owns nothing
+    extremes = [torch.zeros(16 * 24, 3), torch.ones(16 * 24, 3), torch.full((16 * 24, 3), 1e-30)]
+    for view, target in enumerate(extremes):
+        turn.paint(view, target)
+        image, share = turn.painted_image(view)
+        assert torch.isfinite(image).all() and torch.isfinite(share).all()
+        assert float(image.min()) >= 0.0 and float(image.max()) <= 1.0
+    image, share = turn.painted_image(0)
+    assert float(share.max()) == 0.0 and float(image.abs().max()) == 0.0  # nothing painted is seen: no guide there
+    colors = turn.over(torch.full((len(scene), 3), 0.5))
+    assert torch.isfinite(colors).all() and float(colors.min()) >= 0.0 and float(colors.max()) <= 1.0
+    assert float(colors[turn.first == 1].max()) > 0.99  # the all-white view's splats: white
+
+
 def test_fit_split_by_splat_width_separates_disagreeing_views_from_what_no_view_can_draw(small):
     """Agreeing targets: no band loses anything, jointly or alone. Each view with its own marks: every band's joint
     error is above the view's own. A mark finer than the splats: the view alone cannot draw it either."""
