@@ -313,7 +313,7 @@ STROKE = SynthSettings.content_sigma  # the strokes' scale in pixels at Stroke S
 
 
 def _px(value: float) -> str:
-    return f"{value:.1f}".rstrip("0").rstrip(".")
+    return f"{value:.{2 if value < 2 else 1}f}".rstrip("0").rstrip(".")
 
 
 def test_the_note_suggests_the_smallest_stroke_size_that_reaches_the_splats():
@@ -341,6 +341,8 @@ def test_for_ink_the_note_weighs_the_splats_against_the_drawings_lines_and_sugge
         "(2 px): they will show its tones and hatching rather than single lines"
     )
     assert stroke_size_note(1.9, ink, ink_line=1.0) is None
+    close = stroke_size_note(1.14, ink, ink_line=0.54)  # sub-pixel widths that 0.1 px would show as equal
+    assert "about 1.14 px wide" in close and "(1.08 px)" in close
     assert stroke_size_note(3.0, ink, fit_scale=2.0, ink_line=1.0) is None  # lines 4 fit pixels wide
     assert "the strokes at" in stroke_size_note(3.5 * STROKE, ink)  # no line width: the strokes' scale
 

@@ -226,8 +226,8 @@ def style_size(config: StylizeConfig) -> tuple[int, int]:
     )
 
 
-def _pixels(value: float) -> str:
-    return f"{value:.1f}".rstrip("0").rstrip(".")
+def _pixels(value: float) -> str:  # to 0.1 px, to 0.01 px below 2 px (a drawing's lines, the demo's splats)
+    return f"{value:.{2 if value < 2 else 1}f}".rstrip("0").rstrip(".")
 
 
 def stroke_size_note(
