@@ -345,6 +345,7 @@ def test_for_ink_the_note_weighs_the_splats_against_the_drawings_lines_and_sugge
     assert "about 1.14 px wide" in close and "(1.08 px)" in close
     assert stroke_size_note(3.0, ink, fit_scale=2.0, ink_line=1.0) is None  # lines 4 fit pixels wide
     assert "the strokes at" in stroke_size_note(3.5 * STROKE, ink)  # no line width: the strokes' scale
+    assert stroke_size_note(3.0, ink, ink_line=0.0) is None  # a drawing with no ink has no lines to be wider than
 
 
 @pytest.mark.parametrize(("sigma_px", "says"), [(2.5 * STROKE, True), (0.5 * STROKE, False)])

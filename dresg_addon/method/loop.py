@@ -246,7 +246,7 @@ def stroke_size_note(
     size = config.proposal.stroke_size
     if config.proposal.medium == "ink" and ink_line is not None:
         lines = ink_line * size * fit_scale
-        if footprint <= lines:
+        if footprint <= lines or lines <= 0:  # no line at all: nothing to be wider than
             return None
         return (
             f"the scene's splats are about {_pixels(footprint)} px wide at the fit size, wider than the drawing's "
