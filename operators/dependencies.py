@@ -111,7 +111,9 @@ def _run_command(command: list[str], post, cancel: threading.Event) -> None:
         raise DresgError(f"cannot run {command[0]}: {error}") from None
     output: queue.SimpleQueue = queue.SimpleQueue()
     # A reader thread, so the worker sees a cancel while the command is silent (a download).
-    threading.Thread(target=_read_lines, args=(process.stdout, output), name="dresg-install-output", daemon=True).start()
+    threading.Thread(
+        target=_read_lines, args=(process.stdout, output), name="dresg-install-output", daemon=True
+    ).start()
     tail: list[str] = []
     while True:
         if cancel.is_set():

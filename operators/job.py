@@ -173,4 +173,3 @@ class StylizeJob(Job):
         obj["dresg_stylize_settings"] = json.dumps(
             {"style": self.style_name, "seconds": round(result.seconds, 1), **self.config.to_dict()}
         )
-

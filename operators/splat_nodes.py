@@ -197,7 +197,9 @@ def _build_node_group(group) -> None:
     pixel.description = "Width of a render pixel one unit in front of the camera, set for each final render"
     width = interface.new_socket(INPUT_PIXEL_WIDTH, in_out="INPUT", socket_type="NodeSocketFloat")
     width.default_value, width.min_value = 0.0, 0.0
-    width.description = "Width of a render pixel in the object's units (orthographic cameras), set for each final render"
+    width.description = (
+        "Width of a render pixel in the object's units (orthographic cameras), set for each final render"
+    )
     core = interface.new_socket(INPUT_CORE_ALPHA, in_out="INPUT", socket_type="NodeSocketFloat")
     core.default_value, core.min_value, core.max_value = 0.0, 0.0, 1.0
     core.description = "Above 0, each solid shape reaches where its splat's alpha falls to this (Workbench renders)"

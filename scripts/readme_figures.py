@@ -53,10 +53,7 @@ def main() -> int:
     rows = []
     for pair in args.pairs.split(","):
         scene, style = pair.split(":")
-        images = [
-            read_rgb(folder / f"{scene}_{style}_{row}_v{args.view:02d}.png")
-            for row in args.columns.split(";")
-        ]
+        images = [read_rgb(folder / f"{scene}_{style}_{row}_v{args.view:02d}.png") for row in args.columns.split(";")]
         height, width = images[0].shape[0] // 2, images[0].shape[1] // 2  # the fit size: a 2x crop of the object
         top, left = object_window(images[0], width, height)
         tiles = [image[top : top + height, left : left + width] for image in images]

@@ -111,7 +111,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         help="how much of the scene's light above the stroke scale the marks keep, in [0, 1], as a share of what "
         "Paint <-> Scene asks",
     )
-    parser.add_argument("--medium", choices=engine("method.medium").MEDIA, help="what the painting is (auto: read from it)")
+    parser.add_argument(
+        "--medium", choices=engine("method.medium").MEDIA, help="what the painting is (auto: read from it)"
+    )
     parser.add_argument("--schedule")
     parser.add_argument("--geometry", action=argparse.BooleanOptionalAction, help="optimise geometry offsets")
     parser.add_argument("--max-views", type=int)

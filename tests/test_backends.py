@@ -110,8 +110,12 @@ def test_the_synth_backend_gets_the_same_settings_and_proposes_the_same_pixels(c
     before = SynthBackend(
         seed=config.seed, content_weight=weight, content_sigma=SynthSettings.content_sigma * config.proposal.stroke_size
     )
-    assert built.settings == before.settings == replace(
-        SynthSettings(), seed=config.seed, content_weight=weight, content_sigma=before.settings.content_sigma
+    assert (
+        built.settings
+        == before.settings
+        == replace(
+            SynthSettings(), seed=config.seed, content_weight=weight, content_sigma=before.settings.content_sigma
+        )
     )
     gen = torch.Generator().manual_seed(0)
     content, style = torch.rand(3, 24, 32, generator=gen), torch.rand(3, 24, 32, generator=gen)

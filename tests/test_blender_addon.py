@@ -326,7 +326,9 @@ def test_stylize_reports_input_errors_before_running(addon, tmp_path, monkeypatc
     assert addon.operators.job.StylizeJob.current() is None
 
 
-def test_the_proposal_menu_its_notes_and_the_operators_warning_come_from_the_registry(addon, tmp_path, capfd, monkeypatch):
+def test_the_proposal_menu_its_notes_and_the_operators_warning_come_from_the_registry(
+    addon, tmp_path, capfd, monkeypatch
+):
     """Issue 29: the panel's Proposal items are the registry's; the panel shows the backend's availability reason and
     CPU estimate, and Stylize reports the same slow_note the CLI prints."""
     backends = addon.dresg_addon.method.backends
@@ -433,14 +435,30 @@ def test_extension_zip_builds_and_installs(tmp_path):
     import zipfile
 
     names = [n for n in zipfile.ZipFile(archive).namelist() if not n.endswith("/")]
-    shipped = {n.split("/")[0] if "/" in n and not n.startswith("dresg_addon/") else "/".join(n.split("/")[:2]) for n in names}
+    shipped = {
+        n.split("/")[0] if "/" in n and not n.startswith("dresg_addon/") else "/".join(n.split("/")[:2]) for n in names
+    }
     # What Blender runs, and nothing else: no CLI, evaluation (report, plots, stability suite), tests or benchmarks.
     assert shipped == {
-        "blender_manifest.toml", "__init__.py", "LICENSE", "operators", "ui",
-        "dresg_addon/__init__.py", "dresg_addon/blender", "dresg_addon/method", "dresg_addon/raster", "dresg_addon/scene",
+        "blender_manifest.toml",
+        "__init__.py",
+        "LICENSE",
+        "operators",
+        "ui",
+        "dresg_addon/__init__.py",
+        "dresg_addon/blender",
+        "dresg_addon/method",
+        "dresg_addon/raster",
+        "dresg_addon/scene",
         "dresg_addon/util",
     }, sorted(shipped)
-    assert {"operators/stylize.py", "ui/panels.py", "dresg_addon/method/loop.py", "dresg_addon/scene/gaussians.py", "dresg_addon/blender/splat_mesh.py"} <= set(names)
+    assert {
+        "operators/stylize.py",
+        "ui/panels.py",
+        "dresg_addon/method/loop.py",
+        "dresg_addon/scene/gaussians.py",
+        "dresg_addon/blender/splat_mesh.py",
+    } <= set(names)
     assert not [n for n in names if "__pycache__" in n or n.endswith((".pyc", ".jpg", ".png"))]
 
     code = textwrap.dedent(

@@ -133,7 +133,14 @@ def test_saved_views_onto_a_full_disk_stop_the_run_with_one_line(inputs, tmp_pat
 @pytest.mark.slow
 def test_a_failed_checkpoint_stops_the_run_and_the_last_good_one_resumes(inputs, tmp_path):
     args = ["stylize", inputs["scene"], "--cameras", inputs["cameras"], "--style", inputs["style"], *TINY]
-    args += ["--early-stop", "0", "--sh-rest", "keep", "--post-steps", "2"]  # the post stage: a log entry after the stages
+    args += [
+        "--early-stop",
+        "0",
+        "--sh-rest",
+        "keep",
+        "--post-steps",
+        "2",
+    ]  # the post stage: a log entry after the stages
     # The size of a first-stage checkpoint, from a one-stage run: the next stage's adds a log entry to it.
     probe = _cli([*args, "--stages", "1", "--out", tmp_path / "probe" / "s.ply"])
     assert probe.returncode == 0, probe.stderr
