@@ -8,7 +8,7 @@ script gives it the benchmark's defaults from ``../shared/data`` (or ``$DRESG_SH
 ``--scene``, the bonsai (273k Gaussians, y-down) unless ``--quick``; without ``--styles``, Starry Night and The
 Scream (only the first with ``--quick``) for a real scene. Absent files are left out (the demo then runs).
 docs/report.md was written this way: ``bench/report.py --presets preview,standard --width 448 --height 320
---out docs/report``.
+--out DIR``, then DIR's report.md and plots copied into docs/ (the plots as ``report_*.png``, the links renamed).
 """
 
 from __future__ import annotations
