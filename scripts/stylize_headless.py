@@ -71,6 +71,10 @@ def load_addon(package: str = PACKAGE):
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
+    return build_parser().parse_args(argv)
+
+
+def build_parser() -> argparse.ArgumentParser:
     config = engine("method.config")
     DEFAULT_PRESET, PRESETS, PROPOSALS = config.DEFAULT_PRESET, config.PRESETS, config.PROPOSALS
 
@@ -93,33 +97,24 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     )
     parser.add_argument("--cameras", help="camera file or folder (cameras.json, COLMAP, poses_bounds.npy)")
     parser.add_argument("--orbit", type=int, default=12, help="orbit cameras to add when there are none")
-    parser.add_argument("--stages", type=int)
-    parser.add_argument("--fit-steps", type=int)
-    parser.add_argument("--post-steps", type=int)
+    knobs = {flag: (kind, text) for flag, _, kind, text in engine("commands.stylize").KNOBS}  # the CLI's words
+    for flag in ("--stages", "--fit-steps", "--post-steps"):
+        parser.add_argument(flag, type=knobs[flag][0], help=knobs[flag][1])
     parser.add_argument("--width", type=int, help="proposal width")
     parser.add_argument("--height", type=int, help="proposal height")
-    parser.add_argument("--stroke-size", type=float, help="the painting's scale against the view (1: as now)")
+    for flag in ("--stroke-size", "--paint-scene", "--scene-light"):
+        parser.add_argument(flag, type=knobs[flag][0], help=knobs[flag][1])
+    medium = engine("method.medium")
     parser.add_argument(
-        "--paint-scene",
-        type=float,
-        help="Paint <-> Scene in [0, 1]: how much of the scene's forms the painting may override "
-        "(0 the painting's, 1 the scene's)",
-    )
-    parser.add_argument(
-        "--scene-light",
-        type=float,
-        help="how much of the scene's light above the stroke scale the marks keep, in [0, 1], as a share of what "
-        "Paint <-> Scene asks",
-    )
-    parser.add_argument(
-        "--medium", choices=engine("method.medium").MEDIA, help="what the painting is (auto: read from it)"
+        "--medium",
+        choices=medium.MEDIA,
+        help="what the painting is; " + "; ".join(f"{name}: {text[1]}" for name, text in medium.MEDIUM_LABELS.items()),
     )
     parser.add_argument("--schedule")
     parser.add_argument("--geometry", action=argparse.BooleanOptionalAction, help="optimise geometry offsets")
-    parser.add_argument("--max-views", type=int)
-    parser.add_argument("--render-scale", type=float)
-    parser.add_argument("--seed", type=int)
-    return parser.parse_args(argv)
+    for flag in ("--max-views", "--render-scale", "--seed"):
+        parser.add_argument(flag, type=knobs[flag][0], help=knobs[flag][1])
+    return parser
 
 
 def script_arguments(argv: list[str]) -> list[str]:

@@ -27,6 +27,7 @@ from dresg_addon.method.bookkeeping import RunHooks, RunRecord
 from dresg_addon.method.config import PRESETS, StylizeConfig, preset
 from dresg_addon.method.fitting import ViewRenderer, seen_gaussians, splat_footprint
 from dresg_addon.method.loop import Stylization, _proposal_backend, scene_brightness, stroke_size_note, stylize
+from dresg_addon.method.medium import MEDIUM_LABELS
 from dresg_addon.method.proposal.synth import SynthBackend, SynthSettings
 from dresg_addon.raster import RasterSettings
 from dresg_addon.raster.projection import project_gaussians, projected_mean_variance, splat_covariances
@@ -242,6 +243,18 @@ def test_the_headless_script_takes_both_flags():
     assert stylize_headless.OVERRIDES["stroke_size"] == "stroke_size"
     assert stylize_headless.OVERRIDES["paint_scene"] == "scene_weight"
     assert "content_weight" not in stylize_headless.OVERRIDES
+
+
+def test_the_headless_script_says_what_the_cli_says():
+    import stylize_headless
+
+    from dresg_addon.commands.stylize import KNOBS
+
+    parser = stylize_headless.build_parser()
+    helps = {flag: action.help for action in parser._actions for flag in action.option_strings}
+    for flag in ("--stages", "--stroke-size", "--paint-scene", "--scene-light", "--seed"):
+        assert helps[flag] == next(text for name, _, _, text in KNOBS if name == flag)
+    assert all(label[1] in helps["--medium"] for label in MEDIUM_LABELS.values())
 
 
 # --- the splats' footprint ----------------------------------------------------------------------------------
