@@ -443,7 +443,7 @@ class ViewsInTurn:
         count = views.energy.numel()
         self.colors = torch.zeros(count, 3)
         self.painted = torch.zeros(count, dtype=torch.bool)
-        self.settings = replace(settings, anchor=0.0, max_rounds=rounds, best_views=0.0, first_view=0.0)
+        self.settings = replace(settings, anchor=0.0, max_rounds=rounds)  # only the solve's own settings are read
 
     def painted_image(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:  # -> [P, 3], [P]
         """What the painted splats show in ``view``: their colour at each pixel (0 where none is drawn) and the

@@ -262,7 +262,7 @@ def stroke_size_note(
         f"Stroke Size {size:g} ({_pixels(strokes)} px): they will show the painting's colours and "
         "regions more than its marks; "
     )
-    larger = [size for size in STROKE_SIZES if size * per_size >= footprint]
+    larger = [candidate for candidate in STROKE_SIZES if candidate * per_size >= footprint]
     if larger:
         return line + f"Stroke Size {larger[0]:g} would let them carry the marks"
     return line + f"even Stroke Size {STROKE_SIZES[-1]:g} ({_pixels(STROKE_SIZES[-1] * per_size)} px) is not enough"
@@ -546,9 +546,9 @@ class Stylization:
             self.hooks.check_cancel()
             message = f"painting view {i + 1}/{views} ({self.names[i]})"
             self.hooks.report(stage.index, i, views, "proposal", float("nan"), message)
-            guide, weight = None, self.config.proposal.guide_weight
+            guide, weight, camera = None, self.config.proposal.guide_weight, self.cameras[i]
             if turn is not None:
-                guide = painted_guide(turn, i, self.renderer.fast[i].camera, self.size, weight)
+                guide = painted_guide(turn, i, camera, self.size, weight)
             elif guided:
                 guide = view_guide(i, list(range(i)), done, depths, self.alphas, self.cameras, weight)
             kwargs = {"guide": guide} if guide is not None else {}
@@ -557,7 +557,6 @@ class Stylization:
             )
             if turn is not None:
                 proposal = self.backend.decode(self.states[i]).detach().float().cpu()
-                camera = self.renderer.fast[i].camera
                 turn.paint(i, _resize(proposal, camera.height, camera.width))
             elif guided:
                 done[i] = self.backend.decode(self.states[i]).detach().float()
