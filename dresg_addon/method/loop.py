@@ -239,7 +239,8 @@ def stroke_size_note(
     :func:`stroke_sigma` (proposal pixels) x ``fit_scale`` (fit pixels per proposal pixel). The line suggests the
     smallest of :data:`STROKE_SIZES` whose strokes reach the splats, or says that even the largest does not.
     For ink, ``ink_line`` (the drawing's :func:`~.medium.line_width` in proposal pixels at Stroke Size 1) is the
-    scale instead, and no Stroke Size is suggested: on the demo scene larger ones drew the lines as spots.
+    scale instead, and no Stroke Size is suggested: larger ones drew the lines as spots on the demo scene and as
+    tones still on the bonsai and Luigi (bench/README.md, "Ink at larger Stroke Sizes").
     """
     if footprint is None or config.proposal.backend != "synth":
         return None
