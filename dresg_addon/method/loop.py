@@ -538,7 +538,11 @@ class Stylization:
         guided = self.backend.takes_guides and self.config.proposal.guide_weight > 0 and len(self.cameras) > 1
         # Ink: the views paint the splats in turn, each guided by what the earlier ones painted (guides.py);
         # paint: each view guided by the earlier views' proposals reprojected into it.
-        turn = ViewsInTurn(self.solver.views, INK_FIRST_VIEW, self.solver.settings) if guided and self.ramp else None
+        turn = (
+            ViewsInTurn(self.solver.views, INK_FIRST_VIEW, self.solver.settings)
+            if guided and self.ramp is not None
+            else None
+        )
         if guided and turn is None:
             depths = [self.renderer.depth(v, self.state) for v in range(len(self.cameras))]
             done: list[torch.Tensor | None] = [None] * len(self.cameras)
