@@ -32,11 +32,12 @@ import statistics
 import sys
 import tempfile
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 
-# (key, row label, table, StylizeConfig changes)
+# (key, row label, table, Plan changes: the ablation flags and the residual curve)
 VARIANTS = (
     ("full", "DReSG (full)", "both", {}),
     ("no-qc", "w/o Q_c", "components", {"use_content_query": False}),
@@ -84,44 +85,43 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def base_config(args):
+    """(config, plan) of the variants' base: the preview preset, shrunk by --quick and changed by the flags."""
     from dresg_addon.evaluation.report_measure import quick_config
     from dresg_addon.method.config import preset
     from dresg_addon.util.errors import ConfigError
 
     config = preset("preview", seed=args.seed)
+    plan = config.plan()
     if args.quick:
-        config = quick_config(config)
-    changes = {
-        "stages": args.stages,
-        "updates_per_stage": args.updates,
-        "fit_steps": args.fit_steps,
-        "post_steps": args.post_steps,
-        "max_views": args.max_views,
-        "proposal": args.proposal,
-        "model_path": args.model,
-    }
+        config, plan = quick_config(config, plan)
+    changes = {"stages": args.stages, "max_views": args.max_views, "proposal": args.proposal, "model_path": args.model}
     if args.proposal_size:
         try:
             width, height = (int(v) for v in args.proposal_size.lower().split("x"))
         except ValueError:
             raise ConfigError(f"--proposal-size must look like 224x160, got {args.proposal_size!r}") from None
         changes.update(proposal_width=width, proposal_height=height)
-    return config.with_(**{k: v for k, v in changes.items() if v is not None})
+    steps = {"updates_per_stage": args.updates, "fit_steps": args.fit_steps, "post_steps": args.post_steps}
+    config = config.with_(**{k: v for k, v in changes.items() if v is not None})
+    return config, plan.with_(**{k: v for k, v in steps.items() if v is not None})
 
 
 ATTENTION_ONLY = ("no-ks", "no-vs")
 
 
 def chosen_variants(args, proposal: str):
+    from dresg_addon.method.backends import BACKENDS
+
+    attention = BACKENDS[proposal].has_attention
     if not args.variants:
-        return [v for v in VARIANTS if proposal != "synth" or v[0] not in ATTENTION_ONLY]
+        return [v for v in VARIANTS if attention or v[0] not in ATTENTION_ONLY]
     keys = [k.strip() for k in args.variants.split(",") if k.strip()]
     known = {v[0]: v for v in VARIANTS}
     unknown = [k for k in keys if k not in known]
     if unknown:
         raise SystemExit(f"unknown variant(s) {', '.join(unknown)}; choose from {', '.join(known)}")
-    if proposal == "synth" and set(keys) & set(ATTENTION_ONLY):
-        raise SystemExit("w/o K_s and w/o V_s change the attention energy, which the synth backend has not")
+    if not attention and set(keys) & set(ATTENTION_ONLY):
+        raise SystemExit(f"w/o K_s and w/o V_s change the attention energy, which the {proposal} backend has not")
     return [known[k] for k in keys]
 
 
@@ -137,20 +137,21 @@ def run(args) -> dict:
     from dresg_addon.evaluation.views import base_views, evaluate_views
 
     machine = machine_description()
-    config = base_config(args)
+    config, plan = base_config(args)
     defaults = shared_defaults(args.scene, args.styles, quick=False)
     options = ReportOptions(width=args.width, height=args.height, views=args.views, **defaults).resolved()
     inputs = load_inputs(options)
-    variants = chosen_variants(args, config.proposal.backend)
+    variants = chosen_variants(args, config.proposal)
     print(f"{inputs.scene_label}; styles: {', '.join(n for n, _ in inputs.styles)}", file=sys.stderr)
     results = {key: [] for key, *_ in variants}
     started = time.perf_counter()
     base = base_views(inputs.scene, inputs.eval_cameras)
     for style_name, style in inputs.styles:
         for key, label, _, changes in variants:
-            variant = config.with_(**changes)
+            variant = plan.with_(**changes)
             with tempfile.TemporaryDirectory() as work:
-                result, _, _ = stylize_with_log(inputs.scene, inputs.cameras, style, variant, Path(work) / "log.jsonl")
+                log = Path(work) / "log.jsonl"
+                result, _, _ = stylize_with_log(inputs.scene, inputs.cameras, style, config, log, variant)
             measured = {
                 "style": style_name,
                 "seconds": result.seconds,
@@ -169,7 +170,7 @@ def run(args) -> dict:
         "styles": [n for n, _ in inputs.styles],
         "cameras": f"{len(inputs.cameras)} orbit views at {options.width}x{options.height} (metrics on the "
         f"{len(inputs.eval_cameras)} novel views between them)",
-        "config": config.to_dict(),
+        "config": {**asdict(plan), **config.to_dict()},
         "variants": [(key, label, table) for key, label, table, _ in variants],
         "results": results,
         "seconds": time.perf_counter() - started,
@@ -207,7 +208,7 @@ def markdown(report: dict) -> str:
         f"{report['cameras']}; base configuration: {c['stages']} stages x {c['updates_per_stage']} updates, "
         f"{c['fit_steps']} fit / {c['post_steps']} post steps, proposals {c['proposal_width']}x"
         f"{c['proposal_height']}, {c['proposal']} proposal backend, geometry {'on' if c['optimize_geometry'] else 'off'}, "
-        f"at most {c['max_views'] or 'all'} active views, render scale {c['render_scale']}. Means over the pairs; "
+        f"at most {c['max_views'] or 'all'} active views. Means over the pairs; "
         f"time is the stylization's wall time. Machine: {report['machine']}.",
         "",
     ]

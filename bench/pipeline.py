@@ -33,6 +33,7 @@ import os
 import sys
 import tempfile
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import harness  # bench/, beside this script
@@ -86,13 +87,13 @@ def load_inputs(spec: dict):
 def run_preset(spec: dict) -> dict:
     """One stylize run of ``spec['preset']`` with ``spec['overrides']``, timed phase by phase."""
     from dresg_addon.method import views
-    from dresg_addon.method.config import preset
+    from dresg_addon.method.config import preset_run
     from dresg_addon.method.loop import stylize
 
     started = time.perf_counter()
     scene, cameras, style, label = load_inputs(spec)
     load_s = time.perf_counter() - started
-    config = preset(spec["preset"], **spec["overrides"])
+    config, plan = preset_run(spec["preset"], **spec["overrides"])
     spent = {"selection": 0.0}
     marks: dict[str, float] = {}
 
@@ -114,7 +115,7 @@ def run_preset(spec: dict) -> dict:
             marks.setdefault("first_proposal", time.perf_counter())
 
     run_start = time.perf_counter()
-    result = stylize(scene, cameras, style, config, progress=harness.THREADS.wrap(progress))
+    result = stylize(scene, cameras, style, config, progress=harness.THREADS.wrap(progress), plan=plan)
     stages = [e for e in result.log if e["stage"] != "post"]
     post = [e for e in result.log if e["stage"] == "post"]
     stage_s = sum(e["stage_seconds"] for e in stages)
@@ -136,7 +137,7 @@ def run_preset(spec: dict) -> dict:
         "fit_step_s": (stage_s - spent["proposals"]) / max(fit_steps, 1),
         "post_s": sum(e["stage_seconds"] for e in post),
         "total_s": result.seconds,
-        "config": config.to_dict(),
+        "config": {**asdict(plan), **config.to_dict()},
         "peak_rss": harness.peak_rss_bytes(),
     }
 
@@ -315,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.loaded:
         return loaded_run(args)
 
-    from dresg_addon.method.config import PRESETS
+    from dresg_addon.method.config import preset_run
 
     size = QUICK if args.quick else FULL
     common = {**size, "threads": args.threads}
@@ -336,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
     ):
         print(f"  running {name} ...", file=sys.stderr, flush=True)
         runs.append((name, ran, call_worker({"kind": "preset", "preset": name, "overrides": overrides, **common})))
-    paper = PRESETS["paper"].with_(**quick, stages=3) if args.quick else PRESETS["paper"]
+    paper, paper_plan = preset_run("paper", **quick, stages=3) if args.quick else preset_run("paper")
     print("  running one stage of paper ...", file=sys.stderr, flush=True)
     one_stage = {**quick, "stages": 1, "post_steps": 0}
     paper_one = call_worker({"kind": "preset", "preset": "paper", "overrides": one_stage, **common})
@@ -352,11 +353,11 @@ def main(argv: list[str] | None = None) -> int:
         "",
     ]
     if "error" not in paper_one:
-        estimate = paper_extrapolation(paper_one, paper.schedule.stages, paper.fit.post_steps)
+        estimate = paper_extrapolation(paper_one, paper.stages, paper_plan.post_steps)
         lines.append(
-            f"- paper, extrapolated from its one measured stage to {paper.schedule.stages} stages + {paper.fit.post_steps} post "
-            f"steps: about {secs(estimate)} (selection + setup + {paper.schedule.stages} x "
-            f"{secs(paper_one['proposals_s'] + paper_one['fitting_s'])} per stage + {paper.fit.post_steps} x "
+            f"- paper, extrapolated from its one measured stage to {paper.stages} stages + {paper_plan.post_steps} post "
+            f"steps: about {secs(estimate)} (selection + setup + {paper.stages} x "
+            f"{secs(paper_one['proposals_s'] + paper_one['fitting_s'])} per stage + {paper_plan.post_steps} x "
             f"{paper_one['fit_step_s']:.2f} s per fit step); peak memory {gb(paper_one['peak_rss'])}"
         )
         if not args.quick:
@@ -400,7 +401,7 @@ def sd15_lines(args, common: dict, cpu_run: dict) -> list[str]:
     tiny = call_worker({"kind": "sd15", **common, "width": width, "height": height, "updates": 2 if args.quick else 10})
     paper = PRESETS["paper"]
     views = cpu_run.get("views", 16) if "error" not in cpu_run else 16
-    estimate = estimate_cpu_seconds(views, paper.schedule.stages, paper.schedule.updates_per_stage, *SD15_SIZE)
+    estimate = estimate_cpu_seconds(views, paper.stages, paper.plan().updates_per_stage, *SD15_SIZE)
     measured = "failed: " + tiny["error"] if "error" in tiny else f"{tiny['seconds_per_update']:.2f} s"
     return [
         f"sd15 (paper schedule, {SD15_SIZE[0]}x{SD15_SIZE[1]}, fp32 on this CPU):",

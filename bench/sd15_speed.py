@@ -107,7 +107,7 @@ def whole_run(case: str, preset_name: str, folder: Path, device: str) -> dict:
         "preset": preset_name,
         "seconds": seconds,
         "stages": len(stages),
-        "of_stages": config.schedule.stages,
+        "of_stages": config.stages,
         "proposal_seconds": sum(e.get("proposal_seconds", 0.0) for e in stages),
         "peak_rss_mb": harness.peak_rss_bytes() / 2**20,
     }

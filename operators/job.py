@@ -27,7 +27,19 @@ class StylizeJob(Job):
 
     kind = "stylize"
 
-    def __init__(self, obj, scene, cameras, style_rgb, config, *, views=None, style_name: str = "", mask=None) -> None:
+    def __init__(
+        self,
+        obj,
+        scene,
+        cameras,
+        style_rgb,
+        config,
+        *,
+        views=None,
+        style_name: str = "",
+        mask=None,
+        dino_path: str = "",
+    ) -> None:
         super().__init__()
         self.object_name = obj.name
         self.object_uid = obj.session_uid
@@ -35,6 +47,7 @@ class StylizeJob(Job):
         self.n_selected = len(scene) if mask is None else int(mask.sum())  # the splats the run was asked to stylize
         self.n_stylized: int | None = None  # the splats it fitted (the selected ones an active view sees), once done
         self.config = config
+        self.dino_path = dino_path  # local DINO weights for the Adam fit's feature term
         self.style_name = style_name
         self.loss: float | None = None  # the fit's RMSE over covered pixels
         self.eta: float | None = None  # seconds left; None while the run cannot estimate them yet
@@ -82,6 +95,7 @@ class StylizeJob(Job):
                 cancel=cancel,
                 messages=lambda message: post("message", message),
                 mask=self.mask,
+                dino_path=self.dino_path,
             )
         finally:
             threads.restore()  # torch gives the count last set to the next thread (the next job's)
@@ -167,9 +181,9 @@ class StylizeJob(Job):
         scene = result.scene
         self.n_stylized = result.stylized
         write_colors(obj, scene.sh_dc)
-        if self.config.fit.optimize_geometry:
+        if self.config.optimize_geometry:
             write_geometry(obj, scene.means, scene.log_scales, scene.quats)
-        obj["dresg_sh_rest"] = self.config.scene.sh_rest
+        obj["dresg_sh_rest"] = self.config.sh_rest
         obj["dresg_stylize_settings"] = json.dumps(
             {"style": self.style_name, "seconds": round(result.seconds, 1), **self.config.to_dict()}
         )

@@ -11,7 +11,6 @@ from ..dresg_addon.method.backends import BACKENDS
 from ..dresg_addon.method.config import (
     DEFAULT_PRESET,
     PRESETS,
-    SCHEDULES,
     StylizeConfig,
     preset,
     preset_description,
@@ -23,42 +22,27 @@ from ..dresg_addon.scene.up_axis import UP_AXES
 # Panel fields named as StylizeConfig settings (flat names), copied by a preset and read back by config().
 CONFIG_FIELDS = (
     "stages",
-    "fit_steps",
-    "post_steps",
     "proposal_width",
     "proposal_height",
     "stroke_size",
     "scene_weight",
     "scene_light",
     "medium",
-    "schedule",
     "optimize_geometry",
     "max_views",
-    "render_scale",
     "sh_rest",
     "seed",
 )
 
-SCHEDULE_LABELS = {
-    "snr-balanced": (
-        "Balanced (paper)",
-        "Pushes hardest towards the painting in the middle stages, gently at the start and end",
-    ),
-    "fixed-1": ("Even", "Each stage takes the proposal as it is: milder, keeps more of the scene"),
-    "fixed-2": ("Strong", "Each stage pushes twice as far as the proposal: bolder, may overshoot"),
-    "triangle": ("Triangle", "Like Balanced, rising and falling linearly over the stages"),
-    "timestep-cosine": ("Cosine", "Like Balanced, following the stage number instead of the noise level"),
-}
-
 
 def _default(name: str):
-    return PRESETS[DEFAULT_PRESET].value(name)
+    return getattr(PRESETS[DEFAULT_PRESET], name)
 
 
 def _apply_preset(settings, _context) -> None:
     values = PRESETS[settings.preset]
     for name in CONFIG_FIELDS:
-        setattr(settings, name, values.value(name))
+        setattr(settings, name, getattr(values, name))
 
 
 class DRESG_PG_view(bpy.types.PropertyGroup):
@@ -106,21 +90,6 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         min=1,
         soft_max=20,
         default=_default("stages"),
-    )
-    fit_steps: IntProperty(
-        name="Fit Steps",
-        description="With Geometry Offsets on: how many steps the splats take towards each stage's painted views "
-        "(time grows with it). Colour-only runs solve each fit to its best instead",
-        min=0,
-        soft_max=200,
-        default=_default("fit_steps"),
-    )
-    post_steps: IntProperty(
-        name="Final Colour Steps",
-        description="The last stage, which matches the painting's colours: 0 leaves it out; with Geometry Offsets "
-        "on, its number of steps",
-        min=0,
-        default=_default("post_steps"),
     )
     proposal_width: IntProperty(
         name="Width",
@@ -171,12 +140,6 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         items=[(name, *MEDIUM_LABELS[name]) for name in MEDIA],
         default=_default("medium"),
     )
-    schedule: EnumProperty(
-        name="Schedule",
-        description="How far each stage pushes towards the painting",
-        items=[(name, *SCHEDULE_LABELS.get(name, (name, name))) for name in SCHEDULES],
-        default=_default("schedule"),
-    )
     optimize_geometry: BoolProperty(
         name="Geometry Offsets",
         description="Also let the splats move and reshape a little: closer to the paper, several times slower",
@@ -193,7 +156,7 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         description="Resolution the splats are fitted at, relative to the cameras' (see Fit Resolution): lower is faster",
         min=0.05,
         max=4.0,
-        default=_default("render_scale"),
+        default=1.0,
     )
     fit_resolution: EnumProperty(
         name="Fit Resolution",
@@ -246,10 +209,10 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         name="Group", description="Name of the vertex group or boolean point attribute that holds the splats"
     )
 
-    def config(self, model_path: str = "", dino_path: str = "") -> StylizeConfig:
+    def config(self, model_path: str = "") -> StylizeConfig:
         """The StylizeConfig these fields describe (ConfigError when a combination cannot work)."""
         values = {name: getattr(self, name) for name in CONFIG_FIELDS}
-        return preset(self.preset, proposal=self.proposal, model_path=model_path, dino_path=dino_path, **values)
+        return preset(self.preset, proposal=self.proposal, model_path=model_path, **values)
 
 
 classes = (DRESG_PG_view, DRESG_PG_settings)

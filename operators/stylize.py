@@ -73,10 +73,8 @@ def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[
     prefs = addon_preferences(context)
     model_path = model_path or (prefs.sd15_path if prefs is not None else "")
     dino_path = dino_path or (prefs.dino_path if prefs is not None else "")
-    config = settings.config(
-        model_path=bpy.path.abspath(model_path) if model_path else "",
-        dino_path=bpy.path.abspath(dino_path) if dino_path else "",
-    )
+    config = settings.config(model_path=bpy.path.abspath(model_path) if model_path else "")
+    dino_path = bpy.path.abspath(dino_path) if dino_path else ""
     style, style_name = style_image(settings)
     with object_mode(obj):  # one exit from Edit Mode (and back) for both reads
         mask = selection_mask(obj, settings.selection, settings.selection_group)
@@ -85,18 +83,22 @@ def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[
     camera_objects = ticked or scene_cameras(scene)
     views = list(range(len(ticked))) if ticked else None
     note = ""
-    if views is not None and 0 < config.views.max_views < len(views):
+    if views is not None and 0 < config.max_views < len(views):
         views = None  # the engine picks Max Views of the ticked cameras by coverage
-        note = f"{len(ticked)} cameras ticked, Max Views is {config.views.max_views}: the ones that cover the most are used"
+        note = f"{len(ticked)} cameras ticked, Max Views is {config.max_views}: the ones that cover the most are used"
     if camera_objects:
         cameras = fitting_cameras(scene, obj, camera_objects)
     else:
+        from ..dresg_addon.method.views import scaled_cameras
         from ..dresg_addon.scene.orbit import orbit_cameras
 
         note = f"No cameras in the scene: using {settings.orbit_count} orbit cameras"
         up = splat_mesh.local_up(np.array(obj.matrix_world))
-        cameras = orbit_cameras(splats, settings.orbit_count, elevation_deg=settings.orbit_elevation, up=up)
-    run = job.StylizeJob(obj, splats, cameras, style, config, views=views, style_name=style_name, mask=mask)
+        ring = orbit_cameras(splats, settings.orbit_count, elevation_deg=settings.orbit_elevation, up=up)
+        cameras = scaled_cameras(ring, settings.render_scale)
+    run = job.StylizeJob(
+        obj, splats, cameras, style, config, views=views, style_name=style_name, mask=mask, dino_path=dino_path
+    )
     if mask is not None:
         note = f"{note}; " if note else ""
         note += f"stylizing {int(mask.sum()):,} of {len(mask):,} splats (the selection)"

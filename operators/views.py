@@ -74,14 +74,16 @@ def fit_size(scene) -> tuple[int, int]:
 
 
 def fitting_cameras(scene, splat_object, camera_objects) -> list:
-    """Engine cameras for camera objects at the size stylizing and view selection use (:func:`fit_size`)."""
+    """Engine cameras for camera objects at the size stylizing and view selection use (:func:`fit_size`, then
+    Fit Scale)."""
+    from ..dresg_addon.method.views import scaled_cameras
     from ..dresg_addon.scene.camera_io import resize_cameras
 
     cameras = engine_cameras(scene, splat_object, camera_objects)
     width, height = fit_size(scene)
     if cameras and (cameras[0].width, cameras[0].height) != (width, height):
         cameras = resize_cameras(cameras, width=width, height=height)
-    return cameras
+    return scaled_cameras(cameras, scene.dresg.render_scale)
 
 
 def add_camera_objects(context, splat_object, cameras, collection_name: str = ORBIT_COLLECTION) -> list:

@@ -24,15 +24,12 @@ PACKAGE = "stylize_gaussians"
 AXES = {"auto": "AUTO", "opencv": "OPENCV_TO_BLENDER", "y-up": "Y_UP_TO_BLENDER", "z-up": "NONE", "none": "NONE"}
 OVERRIDES = {  # command-line option -> panel setting
     "stages": "stages",
-    "fit_steps": "fit_steps",
-    "post_steps": "post_steps",
     "width": "proposal_width",
     "height": "proposal_height",
     "stroke_size": "stroke_size",
     "paint_scene": "scene_weight",
     "scene_light": "scene_light",
     "medium": "medium",
-    "schedule": "schedule",
     "geometry": "optimize_geometry",
     "max_views": "max_views",
     "render_scale": "render_scale",
@@ -75,8 +72,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    config = engine("method.config")
-    DEFAULT_PRESET, PRESETS, PROPOSALS = config.DEFAULT_PRESET, config.PRESETS, config.PROPOSALS
+    config, backends = engine("method.config"), engine("method.backends")
+    DEFAULT_PRESET, PRESETS = config.DEFAULT_PRESET, config.PRESETS
 
     parser = argparse.ArgumentParser(
         prog="stylize_headless.py", description="Stylize a Gaussian splat scene after a style image (DReSG)."
@@ -86,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", required=True, help="output graphdeco .ply")
     parser.add_argument("--blend", help="a .blend whose cameras to use (python form; Blender takes it before -P)")
     parser.add_argument("--preset", default=DEFAULT_PRESET, help=f"settings preset ({', '.join(PRESETS)})")
-    parser.add_argument("--proposal", choices=PROPOSALS, default="synth")
+    parser.add_argument("--proposal", choices=tuple(backends.BACKENDS), default=backends.DEFAULT_BACKEND)
     parser.add_argument("--model-path", default="", help="SD1.5 diffusers folder or .safetensors (sd15)")
     parser.add_argument("--dino-path", default="", help="local DINOv2 weights for the feature loss")
     parser.add_argument(
@@ -98,8 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--cameras", help="camera file or folder (cameras.json, COLMAP, poses_bounds.npy)")
     parser.add_argument("--orbit", type=int, default=12, help="orbit cameras to add when there are none")
     knobs = {flag: (kind, text) for flag, _, kind, text in engine("commands.stylize").KNOBS}  # the CLI's words
-    for flag in ("--stages", "--fit-steps", "--post-steps"):
-        parser.add_argument(flag, type=knobs[flag][0], help=knobs[flag][1])
+    parser.add_argument("--stages", type=knobs["--stages"][0], help=knobs["--stages"][1])
     parser.add_argument("--width", type=int, help="proposal width")
     parser.add_argument("--height", type=int, help="proposal height")
     for flag in ("--stroke-size", "--paint-scene", "--scene-light"):
@@ -110,10 +106,10 @@ def build_parser() -> argparse.ArgumentParser:
         choices=medium.MEDIA,
         help="what the painting is; " + "; ".join(f"{name}: {text[1]}" for name, text in medium.MEDIUM_LABELS.items()),
     )
-    parser.add_argument("--schedule")
     parser.add_argument("--geometry", action=argparse.BooleanOptionalAction, help="optimise geometry offsets")
-    for flag in ("--max-views", "--render-scale", "--seed"):
+    for flag in ("--max-views", "--seed"):
         parser.add_argument(flag, type=knobs[flag][0], help=knobs[flag][1])
+    parser.add_argument("--render-scale", type=float, help="render resolution relative to the cameras' own")
     return parser
 
 

@@ -4,6 +4,7 @@ import textwrap
 
 import bpy
 
+from ..dresg_addon.method.medium import allows_geometry, holds_scene_light, sets_its_own_stages
 from ..operators import dependencies, job
 from ..operators.splat_nodes import (
     INPUT_MAX_SPLATS,
@@ -155,7 +156,7 @@ class DRESG_PT_style(ChildPanel, bpy.types.Panel):
         layout.prop(settings, "stroke_size")
         layout.prop(settings, "scene_weight", slider=True)
         light = layout.row()
-        light.active = settings.medium != "ink"  # ink holds no scene light
+        light.active = holds_scene_light(settings.medium)
         light.prop(settings, "scene_light", slider=True)
         layout.prop(settings, "medium")
         layout.prop(settings, "selection")
@@ -164,22 +165,6 @@ class DRESG_PT_style(ChildPanel, bpy.types.Panel):
         layout.prop(settings, "preset")
         layout.prop(settings, "proposal")
         _draw_backend_notes(layout, context, settings)
-        ink_stage = settings.medium == "ink" and settings.proposal == "synth"  # ink draws in one stage of its own
-        stages = layout.row()
-        stages.active = not ink_stage
-        stages.prop(settings, "stages")
-        steps = layout.row()
-        steps.active = settings.optimize_geometry  # colour-only fits are solved, not stepped
-        steps.prop(settings, "fit_steps")
-        column = layout.column(align=True)
-        column.prop(settings, "proposal_width", text="Resolution X")
-        column.prop(settings, "proposal_height", text="Y")
-        schedule = layout.row()
-        schedule.active = not ink_stage
-        schedule.prop(settings, "schedule")
-        geometry = layout.row()
-        geometry.active = settings.medium != "ink"  # ink paints colours only
-        geometry.prop(settings, "optimize_geometry")
 
 
 class DRESG_PT_style_advanced(ChildPanel, bpy.types.Panel):
@@ -188,14 +173,28 @@ class DRESG_PT_style_advanced(ChildPanel, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
+        from ..dresg_addon.method.backends import BACKENDS
+
         layout = self.layout
         layout.use_property_split = True
         settings = context.scene.dresg
-        for name in ("post_steps", "max_views", "fit_resolution", "render_scale", "sh_rest", "seed"):
+        stages = layout.row()
+        stages.active = not sets_its_own_stages(settings.medium, BACKENDS[settings.proposal])
+        stages.prop(settings, "stages")
+        layout.prop(settings, "max_views")
+        column = layout.column(align=True)
+        column.prop(settings, "proposal_width", text="Fit Size X")
+        column.prop(settings, "proposal_height", text="Y")
+        for name in ("fit_resolution", "render_scale"):
             layout.prop(settings, name)
         width, height = fit_size(context.scene)
         width, height = max(1, round(width * settings.render_scale)), max(1, round(height * settings.render_scale))
         layout.label(text=f"Fitting at {width} x {height} px ({width * height / 1e6:.2f} MP a view)", icon="INFO")
+        geometry = layout.row()
+        geometry.active = allows_geometry(settings.medium)
+        geometry.prop(settings, "optimize_geometry")
+        for name in ("sh_rest", "seed"):
+            layout.prop(settings, name)
 
 
 class DRESG_PT_views(ChildPanel, bpy.types.Panel):

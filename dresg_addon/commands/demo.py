@@ -38,7 +38,7 @@ def run(args) -> int:
     from ..method.color_transfer import transfer_scene_colors
     from ..method.config import preset
     from ..method.loop import stylize
-    from ..raster import RasterSettings, render_scene
+    from ..raster import render_scene
     from ..scene.camera_io import write_cameras_json
     from ..scene.demo import demo_cameras, demo_scene, demo_style_image
     from ..scene.io import write_scene
@@ -71,7 +71,7 @@ def run(args) -> int:
         messages=lambda m: print(m, file=sys.stderr),
     )
     write_scene(result.scene, out / "stylized.ply")
-    settings = RasterSettings(background=config.scene.background)
+    settings = config.raster()
 
     def image(splats, camera):  # [H, W, 3] on the CPU
         return render_scene(splats, camera, settings, device=device).rgb.cpu()

@@ -14,30 +14,18 @@ HELP = "Choose active views by capped Gaussian coverage (Sec. 4.3) and print the
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_and_cameras(parser)
     parser.add_argument("--max-views", type=int, default=0, help="cap on the number of views (0: none)")
-    parser.add_argument("--w-min", type=float, default=1e-4, help="minimum support w_min")
-    parser.add_argument("--rho", type=float, default=0.98, help="target fraction rho")
-    parser.add_argument("--coverage-stop", type=float, default=0.9999, help="stop at this total coverage")
-    parser.add_argument("--gain-threshold", type=float, default=0.001, help="stop when a view adds less than this")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     add_device_option(parser, use="where the coverage renders run")
 
 
 def run(args) -> int:
-    from ..method.config import StylizeConfig, ViewSettings
+    from ..method.config import StylizeConfig
     from ..method.views import select_active_views
     from ..scene.camera import view_name
 
     device = parse_device(args.device)
     scene, cameras = load_scene_and_cameras(args)
-    config = StylizeConfig(
-        views=ViewSettings(
-            max_views=args.max_views,
-            w_min=args.w_min,
-            rho=args.rho,
-            coverage_stop=args.coverage_stop,
-            gain_threshold=args.gain_threshold,
-        )
-    )
+    config = StylizeConfig(max_views=args.max_views)
     chosen = select_active_views(scene, cameras, config, progress=args.threads.wrap(None), device=device)
     names = [view_name(c, i) for i, c in enumerate(cameras)]
     if args.json:

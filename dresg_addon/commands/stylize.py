@@ -8,17 +8,7 @@ import time
 from pathlib import Path
 
 from ..method.backends import BACKENDS, slow_note
-from ..method.config import (
-    COLOR_FITS,
-    DEFAULT_PRESET,
-    FLAT_NAMES,
-    PRESETS,
-    SCHEDULES,
-    SH_REST_MODES,
-    SOLVE_STARTS,
-    preset,
-    preset_description,
-)
+from ..method.config import DEFAULT_PRESET, PRESETS, SETTINGS, SH_REST_MODES, preset, preset_description
 from ..method.medium import MEDIA, MEDIUM_LABELS
 from ..util.errors import ConfigError, WriteError
 from ._common import (
@@ -33,12 +23,16 @@ from ._common import (
 NAME = "stylize"
 HELP = "Stylize a 3DGS scene after a style image (DReSG) and write the stylized scene."
 
-# Options that map one-to-one onto StylizeConfig fields: (flag, field, type, help).
+# Options that map one-to-one onto StylizeConfig fields: (flag, field, type, help). The headless Blender script takes
+# its help from here.
 KNOBS = (
-    ("--stages", "stages", int, "feedback stages N/S"),
-    ("--updates", "updates_per_stage", int, "proposal updates per stage S (latent steps or synthesis passes)"),
-    ("--fit-steps", "fit_steps", int, "fitting steps per stage M"),
-    ("--post-steps", "post_steps", int, "fitting steps after the final colour transfer (0: no post stage)"),
+    ("--stages", "stages", int, "feedback stages N/S (default: the preset's)"),
+    (
+        "--max-views",
+        "max_views",
+        int,
+        "active views at most, those that see the most (0: no cap; default: the preset's)",
+    ),
     (
         "--stroke-size",
         "stroke_size",
@@ -57,48 +51,10 @@ KNOBS = (
         "--scene-light",
         "scene_light",
         float,
-        "synth: how much of the scene's light above the stroke scale the proposals hold, in [0, 1], as a share "
-        "of what Paint <-> Scene asks (0: the content fusion alone)",
+        "how much of the scene's light above the stroke scale the proposals hold, in [0, 1], as a share "
+        "of what Paint <-> Scene asks (0: the painting's marks set the light too)",
     ),
-    ("--latent-lr", "latent_lr", float, "Adam learning rate of the latent updates"),
-    (
-        "--guide-weight",
-        "guide_weight",
-        float,
-        "how strongly a view keeps the strokes earlier views placed (synth; 0: off)",
-    ),
-    (
-        "--solve-tolerance",
-        "solve_tolerance",
-        float,
-        "colour solve: stop when a round lowers the objective by less than this fraction",
-    ),
-    (
-        "--solve-anchor",
-        "solve_anchor",
-        float,
-        "colour solve: pull toward the colours before each fit (0: plain least squares)",
-    ),
-    (
-        "--best-views",
-        "solve_best_views",
-        float,
-        "colour solve: each splat from the views that draw it most, weights (d / max d)^P (0: all views' average)",
-    ),
-    ("--color-lr", "color_lr", float, "Adam learning rate of the colours"),
-    ("--geometry-lr", "geometry_lr", float, "Adam learning rate of the geometry offsets (means: x scene extent)"),
-    ("--scene-extent", "scene_extent", float, "length the mean offsets' lr and bound scale with (0: measured)"),
-    ("--max-views", "max_views", int, "cap on the number of active views (0: none)"),
-    ("--render-scale", "render_scale", float, "render resolution relative to the cameras' own"),
-    ("--near", "near", float, "near plane of the rasterizer"),
     ("--seed", "seed", int, "random seed (runs are deterministic for a seed)"),
-    (
-        "--early-stop",
-        "early_stop",
-        float,
-        "leave out the remaining stages once two stages improve the style distance by less than this fraction "
-        "(0: run every stage)",
-    ),
 )
 
 
@@ -115,22 +71,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--proposal",
         choices=tuple(BACKENDS),
-        help=f"proposal backend (default {PRESETS[DEFAULT_PRESET].proposal.backend}); "
+        help=f"proposal backend (default {PRESETS[DEFAULT_PRESET].proposal}); "
         + "; ".join(f"{entry.name}: {entry.description}" for entry in BACKENDS.values()),
     )
     parser.add_argument("--model", metavar="PATH", help="local Stable Diffusion 1.5 folder or .safetensors (sd15)")
-    parser.add_argument("--dino", metavar="PATH", help="local DINO weights for the fit loss's feature term")
-    parser.add_argument("--schedule", choices=SCHEDULES, help="residual-strength schedule")
     parser.add_argument(
-        "--color-fit",
-        choices=COLOR_FITS,
-        help="solve (default): the colour fit solved as bounded least squares over all views; adam: Adam steps",
-    )
-    parser.add_argument(
-        "--solve-start",
-        choices=SOLVE_STARTS,
-        help="views (default): each colour solve starts from, and its anchor holds to, what the views show of each "
-        "splat; colors: from the colours it has (the capture's, at the first stage)",
+        "--dino", metavar="PATH", help="local DINO weights for the fit loss's feature term (--geometry)"
     )
     parser.add_argument(
         "--medium",
@@ -141,7 +87,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--sh-rest", choices=SH_REST_MODES, help="zero (default): drop view-dependent SH bands; keep: keep them"
     )
-    parser.add_argument("--proposal-size", metavar="WxH", help="proposal resolution (default 448x320)")
+    parser.add_argument(
+        "--proposal-size", metavar="WxH", help="the fit size the views are painted at (default 448x320)"
+    )
+    parser.add_argument(
+        "--render-scale",
+        type=float,
+        default=1.0,
+        help="render resolution relative to the cameras' own (lower is faster)",
+    )
     geometry = parser.add_mutually_exclusive_group()
     geometry.add_argument(
         "--geometry", dest="geometry", action="store_true", default=None, help="optimise bounded geometry offsets"
@@ -195,11 +149,7 @@ def config_from_args(args):
     for name, field in (
         ("proposal", "proposal"),
         ("model", "model_path"),
-        ("dino", "dino_path"),
-        ("schedule", "schedule"),
-        ("color_fit", "color_fit"),
         ("sh_rest", "sh_rest"),
-        ("solve_start", "solve_start"),
         ("medium", "medium"),
     ):
         if getattr(args, name):
@@ -213,7 +163,7 @@ def config_from_args(args):
         except ValueError:
             raise ConfigError(f"--proposal-size must look like 448x320 (got {args.proposal_size!r})") from None
         overrides["proposal_width"], overrides["proposal_height"] = width, height
-    assert set(overrides) <= set(FLAT_NAMES)  # the tables above name real settings
+    assert set(overrides) <= set(SETTINGS)  # the tables above name real settings
     return preset(args.preset, **overrides)
 
 
@@ -253,15 +203,15 @@ def room_needed(scene, cameras, config, out: Path, log_path: Path, checkpoint_di
     moments, each view's state), the log, and with ``views_dir`` four 8-bit images per view and stage."""
     from ..scene.io import encoded_size
 
-    views = min(len(cameras), config.views.max_views or len(cameras))
-    pixels = config.proposal.width * config.proposal.height
-    per_splat = 3 + (10 if config.fit.optimize_geometry else 0)  # colours, and mean, scale and rotation offsets
+    views = min(len(cameras), config.max_views or len(cameras))
+    pixels = config.proposal_width * config.proposal_height
+    per_splat = 3 + (10 if config.optimize_geometry else 0)  # colours, and mean, scale and rotation offsets
     needs: dict[Path, int] = {}
     for folder, size in (
         (out.parent, encoded_size(scene, out)),
         (checkpoint_dir, 3 * 4 * per_splat * len(scene) + 4 * 3 * pixels * views + 2**20),
         (log_path.parent, 2**20),
-        *([(Path(views_dir), 4 * 3 * pixels * views * (config.schedule.stages + 1))] if views_dir else []),
+        *([(Path(views_dir), 4 * 3 * pixels * views * (config.stages + 1))] if views_dir else []),
     ):
         needs[folder] = needs.get(folder, 0) + size
     return needs
@@ -277,6 +227,7 @@ def run(args) -> int:
     from ..method.bookkeeping import ProgressLines
     from ..method.config import check_run_settings
     from ..method.loop import selection_mask, stylize
+    from ..method.views import scaled_cameras
     from ..scene.io import write_scene
     from ..util.fileutil import check_room
     from ..util.imageio import STYLE_MAX_SIDE, read_rgb
@@ -286,6 +237,9 @@ def run(args) -> int:
     device = None if args.device is None else parse_device(args.device)
     style = read_rgb(args.style, max_side=STYLE_MAX_SIDE)  # before the scene, so a bad style path fails at once
     scene, cameras = load_scene_and_cameras(args)
+    if not (args.render_scale > 0 and args.render_scale == args.render_scale):
+        raise ConfigError(f"--render-scale must be > 0 (got {args.render_scale})")
+    cameras = scaled_cameras(cameras, args.render_scale)
     views = None
     if args.views:
         try:
@@ -301,8 +255,9 @@ def run(args) -> int:
     note = None if args.quiet else slow_note(config, device)
     if note:
         print(f"note: {note}", file=sys.stderr)
-    if not args.quiet and config.fit.optimize_geometry and not _cuda_available():
-        steps = config.schedule.stages * config.fit.fit_steps + config.fit.post_steps
+    if not args.quiet and config.optimize_geometry and not _cuda_available():
+        plan = config.plan()
+        steps = config.stages * plan.fit_steps + plan.post_steps
         print(
             f"note: geometry offsets are on: each of the {steps} fit steps renders every active view with "
             "gradients (about 0.6 s per view for a 270k-splat scene at 448x320 on 2 cores, so hours with 16 "
@@ -335,6 +290,7 @@ def run(args) -> int:
         strength=args.strength,
         mask=mask,
         device=device,
+        dino_path=args.dino or "",
     )
     try:
         write_scene(result.scene, out)

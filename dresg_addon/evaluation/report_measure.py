@@ -27,13 +27,14 @@ import platform
 import statistics
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..method.config import DEFAULT_PRESET, PRESETS, StylizeConfig
+from ..method.config import DEFAULT_PRESET, PRESETS, Plan, StylizeConfig
+from ..method.schedule import DDIM_STEPS
 from ..raster.knobs import SPEED_KNOBS, knob_settings, window_errors
 from ..scene.camera import Camera, look_at
 from ..scene.gaussians import GaussianScene
@@ -302,6 +303,7 @@ class RunRecord:
     group: str  # "preset" or "stages"
     style: str
     config: StylizeConfig
+    plan: Plan
     seconds: float  # stylize wall time (view selection to post stage)
     metrics: dict
     log: list[dict]  # the stylize log (JSON lines, read back)
@@ -309,7 +311,9 @@ class RunRecord:
     views: int = 0  # active views
 
 
-def stylize_with_log(scene, cameras, style, config, log_path: Path) -> tuple[object, list[dict], list[tuple]]:
+def stylize_with_log(
+    scene, cameras, style, config, log_path: Path, plan: Plan | None = None
+) -> tuple[object, list[dict], list[tuple]]:
     """Run :func:`~dresg_addon.method.loop.stylize` with a log file; (result, log records, step timestamps)."""
     from ..method.loop import stylize
 
@@ -320,37 +324,43 @@ def stylize_with_log(scene, cameras, style, config, log_path: Path) -> tuple[obj
         if p.phase in ("fit", "post") and p.step >= 1 and math.isfinite(p.loss):  # NaN: a report between rounds
             steps.append((time.perf_counter() - start, "post" if p.phase == "post" else p.stage, p.step, p.loss))
 
-    result = stylize(scene, cameras, style, config, progress=progress, log_path=log_path)
+    result = stylize(scene, cameras, style, config, progress=progress, log_path=log_path, plan=plan)
     records = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
     return result, records, steps
 
 
-def quick_config(config: StylizeConfig) -> StylizeConfig:
+def quick_config(config: StylizeConfig, plan: Plan) -> tuple[StylizeConfig, Plan]:
     """A preset shrunk for ``--quick``: at most 2 stages of 2 updates, 3 fit and 3 post steps, 2 active
     views, proposals at most 112x80."""
-    scale = min(1.0, 112 / config.proposal.width, 80 / config.proposal.height)
-    return config.with_(
-        stages=min(config.schedule.stages, 2),
-        updates_per_stage=min(config.schedule.updates_per_stage, 2),
-        fit_steps=min(config.fit.fit_steps, 3),
-        post_steps=min(config.fit.post_steps, 3),
-        max_views=min(config.views.max_views or 2, 2),
-        proposal_width=max(16, round(config.proposal.width * scale)),
-        proposal_height=max(16, round(config.proposal.height * scale)),
+    scale = min(1.0, 112 / config.proposal_width, 80 / config.proposal_height)
+    small = config.with_(
+        stages=min(config.stages, 2),
+        max_views=min(config.max_views or 2, 2),
+        proposal_width=max(16, round(config.proposal_width * scale)),
+        proposal_height=max(16, round(config.proposal_height * scale)),
+    )
+    return small, plan.with_(
+        updates_per_stage=min(plan.updates_per_stage, 2),
+        fit_steps=min(plan.fit_steps, 3),
+        post_steps=min(plan.post_steps, 3),
     )
 
 
-def planned_runs(options: ReportOptions) -> list[tuple[str, str, StylizeConfig]]:
-    """(label, group, config) of every run: the presets, then the default preset at each stage count (early
+def planned_runs(options: ReportOptions) -> list[tuple[str, str, StylizeConfig, Plan]]:
+    """(label, group, config, plan) of every run: the presets, then the default preset at each stage count (early
     stop off, so that every count runs in full)."""
-    shrink = quick_config if options.quick else (lambda c: c)
-    runs = [(name, "preset", shrink(PRESETS[name].with_(seed=options.seed))) for name in options.presets]
+    shrink = quick_config if options.quick else (lambda c, p: (c, p))
+    runs = []
+    for name in options.presets:
+        config = PRESETS[name].with_(seed=options.seed)
+        runs.append((name, "preset", *shrink(config, config.plan())))
     for count in options.stage_counts:
-        base = PRESETS[DEFAULT_PRESET].with_(seed=options.seed, early_stop=0.0)
-        config = shrink(base).with_(stages=count)
-        if count * config.schedule.updates_per_stage > config.schedule.ddim_steps:
-            raise ConfigError(f"stage count {count} needs more than {config.schedule.ddim_steps} DDIM steps")
-        runs.append((f"stages {count}", "stages", config))
+        base = PRESETS[DEFAULT_PRESET].with_(seed=options.seed)
+        config, plan = shrink(base, base.plan().with_(early_stop=0.0))
+        config = config.with_(stages=count)
+        if count * plan.updates_per_stage > DDIM_STEPS:
+            raise ConfigError(f"stage count {count} needs more than {DDIM_STEPS} DDIM steps")
+        runs.append((f"stages {count}", "stages", config, plan))
     return runs
 
 
@@ -365,16 +375,26 @@ def run_stylizations(
     for style_name, style in inputs.styles:
         base_metrics[style_name] = evaluate_views(inputs.scene, base, style).mean
         done: dict[str, RunRecord] = {}
-        for label, group, config in planned_runs(options):
-            key = json.dumps(config.to_dict(), sort_keys=True, default=str)
+        for label, group, config, plan in planned_runs(options):
+            key = json.dumps([config.to_dict(), asdict(plan)], sort_keys=True, default=str)
             if key in done:  # a stage count that is a preset itself: measure it once
                 records.append(replace(done[key], label=label, group=group))
                 continue
             safe = "".join(ch if ch.isalnum() else "_" for ch in f"{style_name}_{label}")
-            result, log, steps = stylize_with_log(inputs.scene, inputs.cameras, style, config, work / f"{safe}.jsonl")
+            log_path = work / f"{safe}.jsonl"
+            result, log, steps = stylize_with_log(inputs.scene, inputs.cameras, style, config, log_path, plan)
             measured = evaluate_views(result.scene, base, style).mean
             record = RunRecord(
-                label, group, style_name, config, result.seconds, measured, log, steps, len(result.selection.indices)
+                label,
+                group,
+                style_name,
+                config,
+                plan,
+                result.seconds,
+                measured,
+                log,
+                steps,
+                len(result.selection.indices),
             )
             done[key] = record
             records.append(record)
@@ -393,7 +413,7 @@ def average_runs(records: list[RunRecord]) -> list[dict]:
     rows = []
     for (label, group), runs in grouped.items():
         row = {"label": label, "group": group, "seconds": statistics.mean(r.seconds for r in runs)}
-        row["config"] = runs[0].config.to_dict()
+        row["config"] = {**asdict(runs[0].plan), **runs[0].config.to_dict()}  # the table shows both
         row["views"] = runs[0].views
         for key in runs[0].metrics:
             values = [r.metrics[key] for r in runs if r.metrics[key] is not None]
@@ -417,7 +437,7 @@ def convergence_run(records: list[RunRecord]) -> RunRecord | None:
         return None
     return max(
         records,
-        key=lambda r: (r.config.schedule.stages * r.config.fit.fit_steps + r.config.fit.post_steps, -records.index(r)),
+        key=lambda r: (r.config.stages * r.plan.fit_steps + r.plan.post_steps, -records.index(r)),
     )
 
 

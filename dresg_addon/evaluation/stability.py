@@ -23,7 +23,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from ..method.config import StylizeConfig
+from ..method.config import PRESETS, StylizeConfig
+from ..method.optim import GeometryBounds
 from ..scene.camera import Camera, look_at
 from ..scene.gaussians import SH_C0, GaussianScene
 
@@ -90,11 +91,11 @@ def tiny_cameras() -> list[Camera]:
 
 
 def tiny_config(**changes) -> StylizeConfig:
-    """One stage of two updates, two fit and two post steps, 16 x 16 proposals, geometry on."""
-    base = StylizeConfig().with_(
-        stages=1, updates_per_stage=2, fit_steps=2, post_steps=2, proposal_width=16, proposal_height=16
-    )
-    return base.with_(**changes)
+    """The paper's preset at one stage, 16 x 16 proposals, geometry on (with :data:`TINY_PLAN`)."""
+    return PRESETS["paper"].with_(stages=1, proposal_width=16, proposal_height=16, **changes)
+
+
+TINY_PLAN = PRESETS["paper"].plan().with_(updates_per_stage=2, fit_steps=2, post_steps=2)
 
 
 def _style(color=None, seed: int = 1) -> np.ndarray:  # -> [16, 16, 3]
@@ -109,11 +110,11 @@ def _tensors(scene: GaussianScene) -> tuple[torch.Tensor, ...]:
     return tuple(torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)) for a in arrays)
 
 
-def _stylize_summary(scene, cameras, style, config, prefix: str):
+def _stylize_summary(scene, cameras, style, config, prefix: str, near: float | None = None):
     """Run a tiny stylize: observed values, whether every output array and logged loss is finite, the result."""
     from ..method.loop import stylize
 
-    result = stylize(scene, cameras, style, config)
+    result = stylize(scene, cameras, style, config, plan=TINY_PLAN, near=near)
     out = result.scene
     arrays = [out.means, out.log_scales, out.quats, out.sh_dc, out.opacity_logits]
     colors = out.base_colors
@@ -374,7 +375,7 @@ def _case_scaled(factor: float) -> CaseResult:
     base = render_scene(scene, cameras[0], RasterSettings(near=0.01))
     scaled = render_scene(big, big_cameras[0], RasterSettings(near=near))
     default_near = render_scene(big, big_cameras[0], RasterSettings())
-    visibility = visibility_matrix(big, big_cameras, StylizeConfig().with_(near=near).scene.raster()).to_dense()
+    visibility = visibility_matrix(big, big_cameras, RasterSettings(near=near)).to_dense()
     ok = _finite(scaled.rgb, scaled.depth, default_near.rgb, visibility)
     difference = _max_abs(scaled.rgb - base.rgb)
     depth_ratio = _max_abs(scaled.depth - base.depth * factor) / (factor * _max_abs(base.depth))
@@ -386,13 +387,13 @@ def _case_scaled(factor: float) -> CaseResult:
     }
     # One-stage stylize with geometry, scaled and unscaled: mean offsets are relative to the scene extent.
     config = tiny_config()
-    summary, finite, scaled_run = _stylize_summary(big, big_cameras, _style(), config.with_(near=near), "stylize: ")
+    summary, finite, scaled_run = _stylize_summary(big, big_cameras, _style(), config, "stylize: ", near)
     observed.update(summary)
-    unscaled_run = stylize(scene, cameras, _style(), config)
+    unscaled_run = stylize(scene, cameras, _style(), config, plan=TINY_PLAN)
     extent = scaled_run.log[0]["scene_extent"]
     offsets = np.abs(scaled_run.scene.means.astype(np.float64) - big.means) / factor
     unscaled = np.abs(unscaled_run.scene.means.astype(np.float64) - scene.means)
-    bound = config.adam.mean_bound * extent
+    bound = GeometryBounds().means * extent
     observed["stylize: scene extent / scale factor"] = extent / factor
     observed["stylize: mean offset max / (bound x extent)"] = summary["stylize: mean offset max"] / bound
     observed["stylize: mean |offset| / unscaled run's"] = float(offsets.mean() / unscaled.mean())

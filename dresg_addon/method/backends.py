@@ -18,44 +18,36 @@ from ..util.errors import ConfigError, with_path
 
 
 @dataclass(frozen=True)
-class BackendSettings:
-    """What a run hands its proposal backend; each factory takes the fields its entry declares."""
-
-    seed: int
-    stroke_size: float  # the painting's scale against the view (Stroke Size)
-    scene_weight: float  # Paint <-> Scene in [0, 1]; each backend maps it to its own content weight w_c
-    scene_light: float  # the share of Paint <-> Scene's pull the synth backend gives the scene's light
-    scene_brightness: float  # mean luminance of the content views' covered pixels (synth_light_weight)
-    use_content_query: bool
-    use_style_keys: bool
-    use_style_values: bool
-    latent_lr: float
-    model_path: str
-    device: object  # str | torch.device | None: where a network runs (None: the backend's choice)
-
-
-@dataclass(frozen=True)
 class BackendEntry:
-    """One proposal backend as the CLI, the panel and the loop see it."""
+    """One proposal backend as the CLI, the panel and the loop see it: what it is, what it supports, what it costs."""
 
     name: str
     label: str  # the panel's menu entry
     description: str  # one line: the panel's tooltip and the CLI's help
-    settings: tuple[str, ...]  # the BackendSettings fields ``build`` takes, by keyword
-    build: Callable  # (**declared settings) -> ProposalBackend; imports the backend's module
+    # (config, plan, scene_brightness, device) -> ProposalBackend: reads the run's settings it uses; imports its module
+    build: Callable
     # Wall time of a run's proposals on a 2-core CPU: (views, stages, updates_per_stage, width, height) -> seconds
     cpu_seconds: Callable[[int, int, int, int, int], float]
     uses_gpu: bool = False  # runs a network on the GPU when there is one (on a CPU it is slow)
     requires: tuple[str, ...] = ()  # modules that must be importable
+    needs_model: bool = False  # takes local weights (the run's model_path)
     size_multiple: int = 1  # the proposal width and height must be multiples of it
+    has_attention: bool = False  # an attention energy with style keys and values (the w/o K_s, V_s ablations)
+    # Stroke scale in proposal pixels for a Stroke Size (the scene's forms act above it, the painting's marks below);
+    # None: no such scale, and no note compares the splats with it.
+    stroke_sigma: Callable[[float], float] | None = None
+    holds_light: bool = False  # holds the scene's light by Scene Light, in proportion to its brightness
+    # Ink in one stage of this many passes, the backend's ladder from coarse to fine (medium.Ink); 0: the plan's stages
+    ink_passes: int = 0
+    proposal_cost: float = 0.0  # a proposal's cost per update in coverage renders a view (0: the run's prior)
 
     def unavailable(self, model_path: str = "") -> str | None:
-        """Why this backend cannot run here, in one line, or None. A backend that declares ``model_path``
-        needs one that exists on disk."""
+        """Why this backend cannot run here, in one line, or None. A backend that takes local weights needs a
+        ``model_path`` that exists on disk."""
         missing = [module for module in self.requires if importlib.util.find_spec(module) is None]
         if missing:
             return f"the {self.name} proposal backend needs {' and '.join(missing)} (pip install {' '.join(missing)})"
-        if "model_path" in self.settings:
+        if self.needs_model:
             if not model_path:
                 return (
                     f"the {self.name} proposal backend needs a local model path "
@@ -65,9 +57,10 @@ class BackendEntry:
                 return with_path(Path(model_path), f"no such file or folder (the {self.name} backend's model)")
         return None
 
-    def make(self, settings: BackendSettings):
-        """The backend for a run: its factory called with the settings it declares."""
-        return self.build(**{name: getattr(settings, name) for name in self.settings})
+    def make(self, config, plan, scene_brightness: float = 1.0, device=None):
+        """The backend for a run of ``config`` (a StylizeConfig) and ``plan``; ``scene_brightness`` is the mean
+        luminance of the content views' covered pixels, ``device`` where a network runs (None: its choice)."""
+        return self.build(config, plan, scene_brightness, device)
 
 
 # --- synth -----------------------------------------------------------------------------------------
@@ -75,6 +68,7 @@ class BackendEntry:
 CONTENT_WEIGHT_CAP = 1e3  # the synth backend's w_c at Paint <-> Scene 1: the content decides the coarse bands
 # Seconds of one synthesis pass per view at 448x320 on 2 cores (bonsai x Starry Night, preview).
 SYNTH_SECONDS_PER_PASS = 0.7
+SYNTH_LADDER_PASSES = 12  # one pass per rung of the synthesis's ladder (3 levels x 4 patch sizes: synth.scale_ladder)
 
 
 def synth_content_weight(scene_weight: float) -> float:
@@ -107,6 +101,19 @@ def synth_light_weight(scene_weight: float, scene_light: float, scene_brightness
     return scene_light * min(1.0, 2.0 * scene_weight) * share
 
 
+def light_note(entry: BackendEntry, config, scene_brightness: float) -> str | None:
+    """One line when a backend that holds the scene's light holds less of it than asked, on a dark scene; else None."""
+    if not entry.holds_light or config.scene_light <= 0 or scene_brightness >= LIT_SCENE:
+        return None
+    held = synth_light_weight(1.0, 1.0, scene_brightness)
+    return (
+        f"the scene is dark (mean luminance {scene_brightness:.2f}): "
+        + (f"{held:.0%} of" if held > 0 else "none of")
+        + f" the Scene Light asked for is held (all of it from {LIT_SCENE:g}): a dark capture's light held costs "
+        "its forms"
+    )
+
+
 def synth_stroke_sigma(stroke_size: float) -> float:
     """The synth backend's stroke scale in pixels of the proposal size: its content sigma x Stroke Size (the
     scene's forms act above it, the painting's texture below it)."""
@@ -115,9 +122,16 @@ def synth_stroke_sigma(stroke_size: float) -> float:
     return SynthSettings.content_sigma * stroke_size
 
 
-def _build_synth(seed, stroke_size, scene_weight, scene_light, scene_brightness, use_content_query):
+def _build_synth(config, plan, scene_brightness, _device):
     from .proposal.synth import SynthBackend
 
+    seed, stroke_size, scene_weight, scene_light = (
+        config.seed,
+        config.stroke_size,
+        config.scene_weight,
+        config.scene_light,
+    )
+    use_content_query = plan.ablation.use_content_query
     weight = synth_content_weight(scene_weight) if use_content_query else 0.0
     light = synth_light_weight(scene_weight, scene_light, scene_brightness) if use_content_query else 0.0
     # The colours matched to the painting once more at full resolution whenever the light is asked for, held or not
@@ -186,12 +200,18 @@ def estimate_cpu_seconds(
     return scale * (stages * per_stage + once)
 
 
-def _build_sd15(model_path, device, scene_weight, latent_lr, use_content_query, use_style_keys, use_style_values):
+def _build_sd15(config, plan, _scene_brightness, device):
     from .proposal.base import EnergyTerms
     from .proposal.sd15 import SD15Backend
 
-    terms = EnergyTerms(sd15_content_weight(scene_weight), use_content_query, use_style_keys, use_style_values)
-    return SD15Backend(model_path, device=device, learning_rate=latent_lr, terms=terms)
+    ablation = plan.ablation
+    terms = EnergyTerms(
+        sd15_content_weight(config.scene_weight),
+        ablation.use_content_query,
+        ablation.use_style_keys,
+        ablation.use_style_values,
+    )
+    return SD15Backend(config.model_path, device=device, terms=terms)
 
 
 # --- the registry ------------------------------------------------------------------------------------
@@ -203,31 +223,30 @@ BACKENDS: dict[str, BackendEntry] = {
             name="synth",
             label="Painting Synthesis (no download)",
             description="Pastes the painting's own strokes (example-based synthesis): no weights, runs on the CPU",
-            settings=("seed", "stroke_size", "scene_weight", "scene_light", "scene_brightness", "use_content_query"),
             build=_build_synth,
             cpu_seconds=_synth_cpu_seconds,
+            stroke_sigma=synth_stroke_sigma,
+            holds_light=True,
+            ink_passes=SYNTH_LADDER_PASSES,
         ),
         BackendEntry(
             name="sd15",
             label="Stable Diffusion 1.5",
             description="The paper's diffusion proposal, from a local Stable Diffusion 1.5 folder or .safetensors",
-            settings=(
-                "model_path",
-                "device",
-                "scene_weight",
-                "latent_lr",
-                "use_content_query",
-                "use_style_keys",
-                "use_style_values",
-            ),
             build=_build_sd15,
             cpu_seconds=estimate_cpu_seconds,
             uses_gpu=True,
             requires=("diffusers", "transformers"),
+            needs_model=True,
             size_multiple=8,  # the VAE's latent is an eighth of the image on each side
+            has_attention=True,
+            proposal_cost=20.0,  # a latent update: tens of coverage renders' time a view on a CPU
         ),
     )
 }
+
+
+DEFAULT_BACKEND = "synth"  # weight-free: nothing to download
 
 
 def backend(name: str) -> BackendEntry:
@@ -244,13 +263,12 @@ DEFAULT_VIEWS = 16  # the views an estimate assumes when the run sets no cap (th
 
 def proposal_seconds(config) -> float:
     """The configured backend's estimate of its proposals' wall time on a CPU, for ``config`` (a StylizeConfig)."""
-    proposal, schedule = config.proposal, config.schedule
-    return backend(proposal.backend).cpu_seconds(
-        config.views.max_views or DEFAULT_VIEWS,
-        schedule.stages,
-        schedule.updates_per_stage,
-        proposal.width,
-        proposal.height,
+    return backend(config.proposal).cpu_seconds(
+        config.max_views or DEFAULT_VIEWS,
+        config.stages,
+        config.plan().updates_per_stage,
+        config.proposal_width,
+        config.proposal_height,
     )
 
 
@@ -261,7 +279,7 @@ def duration(seconds: float) -> str:
 def slow_note(config, device=None) -> str | None:
     """The line a user reads before a run whose backend would run its network on the CPU, with its estimate;
     None otherwise. ``device``: where the networks run (None: the GPU when there is one)."""
-    entry = backend(config.proposal.backend)
+    entry = backend(config.proposal)
     if not entry.uses_gpu:
         return None
     import torch
@@ -271,5 +289,5 @@ def slow_note(config, device=None) -> str | None:
         return None
     return (
         f"{entry.name} on this CPU takes about {duration(proposal_seconds(config))} for this schedule (estimate); "
-        f"the synth backend takes minutes"
+        f"the {DEFAULT_BACKEND} backend takes minutes"
     )

@@ -113,19 +113,19 @@ PRICED_LIKE = {"post": "fit"}
 BEST_VIEWS_FIT_COST = 2.9
 
 
-def prior_costs(config) -> dict[str, float]:
-    """:data:`PRIOR_COSTS` for a run of ``config`` (a StylizeConfig): Adam fits cost a render with gradients per
-    step and view, a solved fit with the best views a few joint solves, sd15 proposals tens of renders per latent
-    update."""
+def prior_costs(config, plan, entry) -> dict[str, float]:
+    """:data:`PRIOR_COSTS` for a run of ``config`` (a StylizeConfig) and ``plan`` with the proposal backend ``entry``
+    (backends.BackendEntry): Adam fits cost a render with gradients per step and view, a solved fit with the best
+    views a few joint solves, a backend's proposals what it declares per update."""
     costs = dict(PRIOR_COSTS)
-    if not config.fit.solves_colors():
-        costs["fit"] = 0.8 * max(config.fit.fit_steps, 1)
-        costs["post"] = 0.8 * max(config.fit.post_steps, 1)
-    elif config.solve.best_views > 0:
+    if config.optimize_geometry:
+        costs["fit"] = 0.8 * max(plan.fit_steps, 1)
+        costs["post"] = 0.8 * max(plan.post_steps, 1)
+    elif plan.best_views > 0:
         costs["fit"] *= BEST_VIEWS_FIT_COST
         costs["post"] *= BEST_VIEWS_FIT_COST
-    if config.proposal.backend == "sd15":
-        costs["proposal"] = 20.0 * config.schedule.updates_per_stage
+    if entry.proposal_cost > 0:
+        costs["proposal"] = entry.proposal_cost * plan.updates_per_stage
     return costs
 
 
@@ -373,6 +373,10 @@ def run_id(
     return h.hexdigest()[:16]
 
 
+# What a checkpoint holds, by version: one of another version is not resumed (said in one line).
+CHECKPOINT_SCHEMA = 2
+
+
 class RunRecord:
     """The run's log entries and its files: the checkpoint, the JSON-lines log and the stage images."""
 
@@ -397,6 +401,9 @@ class RunRecord:
             saved = _load_checkpoint(self.checkpoint)
             if saved is None:
                 say(f"ignoring the unreadable checkpoint {self.checkpoint}; starting over")
+            elif saved.get("schema") != CHECKPOINT_SCHEMA:
+                say(f"the checkpoint {self.checkpoint} was written by another version of the add-on; starting over")
+                saved = None
             elif saved.get("run_id") != run_id:
                 say(f"the checkpoint {self.checkpoint} is from other settings, scene, cameras or style; starting over")
                 saved = None
@@ -418,6 +425,7 @@ class RunRecord:
         import torch
 
         payload = {
+            "schema": CHECKPOINT_SCHEMA,
             "run_id": self.run_id,
             "stage": stage,
             "params": [p.detach().clone() for p in params],

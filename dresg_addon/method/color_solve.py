@@ -33,7 +33,6 @@ on the demo scene (preview, 8 views, novel views between them): short-range warp
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -57,8 +56,6 @@ class ColorSolveSettings:
     cg_iterations: int = 8  # conjugate-gradient iterations per round
     ridge: float = 1e-2  # lambda / mean diag(sum_v W_v^T W_v): damping of each round's step
     anchor: float = 0.0  # mu of the proximal term mu e_bar ||c - c_0||^2 (module docstring); 0: plain least squares
-    best_views: float = 0.0  # sharpness p of best_view_colors, applied to the fit; 0: the joint fit itself
-    first_view: float = 0.0  # share tau of first_view_colors (in place of the best views); 0: off
 
     def __post_init__(self) -> None:
         checks = [
@@ -66,12 +63,15 @@ class ColorSolveSettings:
             (self.max_rounds >= 1 and self.cg_iterations >= 1, "max_rounds and cg_iterations must be >= 1"),
             (math.isfinite(self.ridge) and self.ridge > 0.0, "ridge must be finite and > 0"),
             (math.isfinite(self.anchor) and self.anchor >= 0.0, "anchor must be finite and >= 0"),
-            (math.isfinite(self.best_views) and self.best_views >= 0.0, "best_views must be finite and >= 0"),
-            (0.0 <= self.first_view <= 1.0, "first_view must be in [0, 1]"),
         ]
         for ok, message in checks:
             if not ok:
                 raise ConfigError(f"colour solver: {message}")
+
+
+# A run's solve: its rounds and tolerance within 1% of 120 iterations on the bonsai, its anchor mu 0.3 (both measured
+# in the module docstring).
+FIT_SOLVE = ColorSolveSettings(anchor=0.3)
 
 
 @dataclass
@@ -79,29 +79,6 @@ class ColorSolveResult:
     colors: torch.Tensor  # [N, 3] in [0, 1]
     iterations: int  # conjugate-gradient iterations, every round together
     objectives: list[float] = field(default_factory=list)  # f at the start and after each round
-    # [N, 3] the plain least-squares optimum (no anchor), when it was computed
-    least_squares: torch.Tensor | None = None
-    optimum_seconds: float = 0.0  # time the diagnostic solves took (``least_squares``, ``disagreement``; not the fit)
-    disagreement: ViewDisagreement | None = None  # with ``optimum``: how far the views' targets disagree
-
-
-@dataclass
-class ViewDisagreement:
-    """Per active view, the RMSE (covered pixels) of the joint least-squares optimum and of that view solved alone.
-
-    A view solved alone fits its target as well as its splats can; the joint optimum fits it worse only because
-    the other views ask the same splats for other colours. ``ratio`` is the views' mean joint RMSE over their
-    mean single-view RMSE, each plus one 8-bit step (residuals below it are invisible, and their ratio noise):
-    1 when the targets agree, larger the more each view's marks are averaged away.
-    """
-
-    joint: list[float]
-    single: list[float]
-
-    @property
-    def ratio(self) -> float:
-        step = 1.0 / 255.0
-        return (sum(self.joint) / len(self.joint) + step) / (sum(self.single) / len(self.single) + step)
 
 
 class LinearViews:
@@ -306,24 +283,6 @@ def single_view_solutions(
     return solutions
 
 
-def view_disagreement(
-    views: LinearViews,
-    targets: Sequence[torch.Tensor],  # V x [P, 3]
-    joint: torch.Tensor,  # [N, 3] the joint least-squares optimum
-    settings: ColorSolveSettings,
-    covered: float = 0.5,
-) -> ViewDisagreement:
-    """Each view's residual at the joint optimum against its own bounded least-squares optimum (each solve warm-
-    started from ``joint``, unanchored), over its covered pixels (alpha > ``covered``). A diagnostic, run when the
-    optimum is logged."""
-    alone = single_view_solutions(views, targets, joint, replace(settings, anchor=0.0))
-    joint_rmse, single_rmse = [], []
-    for m, b, target, alpha, colors in zip(views.maps, views.constants, targets, views.coverages, alone):
-        joint_rmse.append(_covered_rmse(m.matvec(joint) + b, target, alpha, covered))
-        single_rmse.append(_covered_rmse(m.matvec(colors) + b, target, alpha, covered))
-    return ViewDisagreement(joint_rmse, single_rmse)
-
-
 @dataclass(frozen=True)
 class SplitRow:
     """One view's pixels on splats of one width band: how well the joint fit and the view's own fit carry them."""
@@ -357,7 +316,7 @@ def fit_split(
     if any(not 0 <= v < len(views) for v in check):
         raise ValueError(f"fit_split: views {list(check)} do not index the {len(views)} views")
     flat = _flat_targets(targets, len(views))
-    plain = replace(settings, anchor=0.0, best_views=0.0)
+    plain = replace(settings, anchor=0.0)
     start = view_average_colors(views, flat, torch.full((views.energy.numel(), 3), 0.5))
     joint = projected_solve(views, flat, start, plain).colors
     labels = [f"< {edges[0]:g} px"] if edges else ["all"]
@@ -496,39 +455,15 @@ def solve_colors(
     start: torch.Tensor,  # [N, 3]
     settings: ColorSolveSettings = ColorSolveSettings(),
     each_round: Callable[[int, float, torch.Tensor], None] | None = None,  # (round, objective, colours) after each
-    optimum: bool = False,
-    each_view: Callable[[int], None] | None = None,  # (views solved alone so far) during the best views
-    painted: ViewsInTurn | None = None,  # the first views' painting already made of these targets, to take
+    pick: Callable | None = None,  # (views, targets [P, 3], joint) -> [N, 3]: each splat's colour from the views
 ) -> ColorSolveResult:
-    """The fitted colours in [0, 1]: bounded least squares, anchored to ``start`` when ``settings.anchor`` > 0, then
-    with ``settings.first_view`` > 0 each splat taken from the earliest view that draws it well
-    (:func:`first_view_colors`), else with ``settings.best_views`` > 0 from the views that draw it most
-    (:func:`best_view_colors`).
-
-    ``least_squares`` of the result holds the plain bounded least-squares optimum, the joint optimum the log
-    reports: the least-squares solve itself when it is unanchored, else, only when ``optimum`` is asked for,
-    a second solve without the anchor, warm-started from the fit. ``optimum`` also measures how far the views
-    disagree at that optimum (``view_disagreement``). ``painted``, the views' painting in turn already made of these
-    targets (ink's proposals), gives the first views' colours without painting again. ``each_round`` is called after
-    every round of the fit, ``each_view`` after each view's own solve of the best views (progress; either may raise to
-    cancel).
-    """
+    """The fitted colours in [0, 1]: bounded least squares over all views, anchored to ``start`` when
+    ``settings.anchor`` > 0; then, with ``pick``, each splat's colour taken from the views as it says (the best
+    views, the first view: the medium's choice, method/medium.py). ``each_round`` is called after every round of the
+    joint fit (progress; it may raise to cancel)."""
     flat = _flat_targets(targets, len(views))
     anchor = start.detach().float().clamp(0.0, 1.0)
     result = projected_solve(views, flat, anchor, settings, each_round=each_round)
-    least_squares = result.colors if settings.anchor == 0.0 else None
-    started = time.perf_counter()
-    if least_squares is None and optimum:
-        plain = replace(settings, anchor=0.0)
-        least_squares = projected_solve(views, flat, result.colors, plain).colors
-    if optimum:
-        result.disagreement = view_disagreement(views, flat, least_squares, settings)
-        result.optimum_seconds = time.perf_counter() - started
-    result.least_squares = least_squares
-    if settings.first_view > 0.0 and painted is not None:
-        result.colors = painted.over(result.colors)
-    elif settings.first_view > 0.0:
-        result.colors = first_view_colors(views, flat, result.colors, settings, settings.first_view, each_view)
-    elif settings.best_views > 0.0:
-        result.colors = best_view_colors(views, flat, result.colors, settings, settings.best_views, each_view)
+    if pick is not None:
+        result.colors = pick(views, flat, result.colors)
     return result

@@ -32,6 +32,7 @@ from ..scene.gaussians import GaussianScene
 from ..util.errors import CameraError, NumericalError
 from . import losses, pcgrad
 from .color_solve import (
+    FIT_SOLVE,
     ColorSolveResult,
     ColorSolveSettings,
     LinearViews,
@@ -279,7 +280,7 @@ class MultiViewFit:
         features,  # images [B, 3, H, W] -> feature maps, or None
         base_renders: Sequence[torch.Tensor],  # V x [3, H, W]: what the feature term compares with
         project_gradients: bool,  # PCGrad over the views' colour gradients (False: their mean)
-        pcgrad_eps: float,
+        pcgrad_eps: float = pcgrad.PCGRAD_EPS,
     ):
         self.renderer, self.fit, self.optimizer, self.bounds = renderer, fit, optimizer, bounds
         self.weights, self.features = weights, features
@@ -340,14 +341,11 @@ class BoundedColorFit:
         self,
         renderer: ViewRenderer,
         fit: FitState,
-        settings: ColorSolveSettings,
-        optimum: bool = False,
-        from_views: bool = True,
-        recolor: Callable[[torch.Tensor], torch.Tensor] | None = None,  # [N, 3] -> [N, 3]: e.g. ink's ramp
+        medium,  # method/medium.Medium: how each splat's colour is picked from the views, and recoloured
+        settings: ColorSolveSettings = FIT_SOLVE,
     ):
         self.views = renderer.linear_views(SOLVE_MIN_WEIGHT)
-        self.fit, self.settings, self.optimum, self.from_views = fit, settings, optimum, from_views
-        self.recolor = recolor
+        self.fit, self.medium, self.settings = fit, medium, settings
 
     def solve(
         self,
@@ -357,17 +355,18 @@ class BoundedColorFit:
         each_view=None,
         painted: ViewsInTurn | None = None,
     ) -> ColorSolveResult:  # V x [3, H, W]
-        """Solve from ``start`` (default: with ``from_views`` each splat's view average of the targets, else the
-        current colours; the anchor holds to it), write the colours (through ``recolor``, when given) into the fit
-        state; ``optimum``: also the plain least-squares optimum. ``painted``: as :func:`.color_solve.solve_colors`
-        takes it."""
+        """Solve from ``start`` (default: each splat's view average of the targets; the anchor holds to it), pick each
+        splat's colour as the medium does (``painted``: the views' painting of these targets already made), and write
+        the colours into the fit state."""
         if start is None:
-            current = self.fit.colors.detach()
-            start = view_average_colors(self.views, targets, current) if self.from_views else current
+            start = view_average_colors(self.views, targets, self.fit.colors.detach())
         start = start.detach()
-        result = solve_colors(self.views, targets, start, self.settings, each_round, self.optimum, each_view, painted)
-        if self.recolor is not None:
-            result.colors = self.recolor(result.colors)
+
+        def pick(views, flat, joint):
+            return self.medium.pick_colors(views, flat, joint, self.settings, each_view, painted)
+
+        result = solve_colors(self.views, targets, start, self.settings, each_round, pick)
+        result.colors = self.medium.recolor(result.colors)
         with torch.no_grad():
             self.fit.colors.copy_(result.colors)
         return result

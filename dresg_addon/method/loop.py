@@ -15,8 +15,11 @@ What a scene does not need is left out:
   DC term and the rest is zeroed or kept (``StylizeConfig.sh_rest``).
 - diffusers is imported only for the ``sd15`` backend; with one active view there is no projection.
 - The stages stop early once the style distance stops improving, or once a stage's fit no longer moves
-  the scene (``StylizeConfig.early_stop``), judged only on stages that propose at full detail
+  the scene (``Plan.early_stop``), judged only on stages that propose at full detail
   (``ProposalBackend.full_detail``).
+
+What differs by medium (paint, ink) is the medium's (:mod:`.medium`), and by proposal backend the backend's
+registry entry's (:mod:`.backends`): the loop names neither.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
@@ -36,11 +39,11 @@ from ..scene.gaussians import GaussianScene, blend_colors
 from ..util.errors import CameraError, ConfigError, NumericalError
 from ..util.machine import peak_rss_mb
 from . import views as view_selection
-from .backends import LIT_SCENE, BackendSettings, backend, synth_light_weight, synth_stroke_sigma
+from .backends import backend, light_note
 from .bookkeeping import Progress, RunHooks, RunRecord, StageUpdate, prior_costs, run_id
 from .color_solve import ViewsInTurn
 from .color_transfer import covariance_color_transform, coverage_weight, luminance
-from .config import StylizeConfig, check_run_settings
+from .config import Plan, StylizeConfig, check_run_settings
 from .fitting import (
     BoundedColorFit,
     FitState,
@@ -52,15 +55,14 @@ from .fitting import (
     seen_gaussians,
     splat_footprint,
 )
-from .guides import painted_guide, view_guide
-from .medium import INK_FIRST_VIEW, INK_GUIDE_WEIGHT, INK_PASSES, InkRamp, line_width, resolve_medium
-from .optim import make_fit_optimizer, scene_extent
+from .losses import FitLossWeights
+from .medium import medium_for
+from .optim import FitOptimizerSettings, make_fit_optimizer, scene_extent
 from .schedule import Stage, stage_gammas, stage_timesteps
 from .style_distance import sliced_wasserstein_patches
 from .targets import proposal_residual, residual_target
-from .views import ActiveViews, scaled_cameras
+from .views import ActiveViews
 
-STROKE_SIZES = (1.5, 2.0, 3.0, 4.0)  # what the footprint note suggests, the smallest that reaches the splats
 EARLY_STOP_WINDOW = 2  # stages over which the style distance must improve (one stage may pause, e.g. a coarse one)
 COVERED = 0.5  # alpha above which a pixel counts as covered (fit_residual's)
 STILL_SCENE = 0.005  # RMSE a stage's fit must move the covered pixels by (about one 8-bit level in 0.8) to count
@@ -93,7 +95,9 @@ def stylize(
     strength: float = 1.0,
     mask: np.ndarray | None = None,  # [N] bool, or the indices of the splats to stylize
     device: str | torch.device | None = None,  # where the networks run (sd15, DINO); None: sd15's GPU, DINO's CPU
-    log_optimum: bool = False,  # also log each stage's unanchored joint optimum (a second solve; the quality bench)
+    dino_path: str = "",  # local DINO weights for the Adam fit's feature term (geometry on); empty: patch features
+    plan: Plan | None = None,  # the method's schedule; None: the preset's (benchmarks and tests run variants with it)
+    near: float | None = None,  # the rasterizer's near plane, for a scene in tiny units (None: the rasterizer's)
 ) -> StylizeResult:
     """Algorithm 1 of the paper, returning the stylized scene (the input is never modified).
 
@@ -102,7 +106,8 @@ def stylize(
     to the result only, so a run resumed at another strength reuses its checkpoint. ``mask`` stylizes a
     selection: only those splats are optimised (and count for view selection), every other one comes back
     bit-identical. ``device`` is where the networks run (the sd15 proposals, DINO features); the rasterizer
-    and the colour fit run on the CPU. Deterministic for ``config.seed`` on the CPU.
+    and the colour fit run on the CPU. Deterministic for ``config.seed`` on the CPU; no global random state is
+    touched.
     """
     if not (math.isfinite(strength) and 0.0 <= strength <= 1.0):
         raise ConfigError(f"invalid setting: strength must be in [0, 1] (got {strength})")
@@ -110,7 +115,7 @@ def stylize(
     mask = selection_mask(mask, len(scene), config)
     hooks = RunHooks(progress, on_stage, cancel, messages)
     record = RunRecord(checkpoint_dir, log_path, save_views_dir)
-    run = Stylization(scene, style_rgb, config, hooks, record, mask, device, log_optimum)
+    run = Stylization(scene, style_rgb, config, hooks, record, mask, device, dino_path, plan, near)
     run.select_views(cameras, views)  # Sec. 4.3, Eqs. 13-15: active views by capped coverage
     run.prepare(content_images)  # seen Gaussians, base renders, content views, proposal states
     for stage in run.remaining_stages():  # Sec. 4.2: the DDIM states in stages, gamma_n per stage
@@ -132,7 +137,7 @@ def selection_mask(mask, count: int, config: StylizeConfig) -> np.ndarray | None
     or when the run would move geometry (the selection's neighbours are drawn with fixed colours only)."""
     if mask is None:
         return None
-    if config.fit.optimize_geometry:
+    if config.optimize_geometry:
         raise ConfigError("stylizing a selection needs geometry frozen (a colour-only preset, or --no-geometry)")
     array = np.asarray(mask)
     if array.dtype == bool:
@@ -162,46 +167,6 @@ def stage_improvement(distances: Sequence[float], window: int = EARLY_STOP_WINDO
     return (distances[-1 - window] - distances[-1]) / distances[-1 - window]
 
 
-def medium_config(config: StylizeConfig, style_rgb: np.ndarray, say: Callable[[str], None]) -> StylizeConfig:
-    """The config with its medium resolved (``auto`` read from the painting, :func:`~.medium.resolve_medium`); ink
-    sets the guides' weight and the scene light its own way (:mod:`.medium`)."""
-    medium, note = resolve_medium(config.proposal.medium, style_rgb)
-    if note:
-        say(note)
-    if medium == "paint":
-        return config.with_(medium="paint")
-    if not config.fit.solves_colors():
-        raise ConfigError(
-            "the ink medium paints the colours with the colour solve: use a colour-only preset with --color-fit "
-            "solve (no --geometry), or --medium paint"
-        )
-    ink = config.with_(medium="ink", guide_weight=INK_GUIDE_WEIGHT, scene_light=0.0)
-    if config.proposal.backend != "synth":
-        return ink
-    say(f"ink: one stage of {INK_PASSES} synthesis passes, coarse to fine, the views drawing in turn")
-    return ink.with_(stages=1, updates_per_stage=INK_PASSES, schedule="fixed-1")
-
-
-def _proposal_backend(config: StylizeConfig, device, scene_brightness: float = 1.0):
-    """The configured proposal backend, built by its registry entry from the run's settings it declares;
-    ``scene_brightness`` is :func:`scene_brightness` of the run's content views."""
-    proposal, ablation = config.proposal, config.ablation
-    settings = BackendSettings(
-        seed=config.seed,
-        stroke_size=proposal.stroke_size,
-        scene_weight=proposal.scene_weight,
-        scene_light=proposal.scene_light,
-        scene_brightness=scene_brightness,
-        use_content_query=ablation.use_content_query,
-        use_style_keys=ablation.use_style_keys,
-        use_style_values=ablation.use_style_values,
-        latent_lr=proposal.latent_lr,
-        model_path=proposal.model_path,
-        device=device,
-    )
-    return backend(proposal.backend).make(settings)
-
-
 def scene_brightness(images: Sequence[torch.Tensor], coverages: Sequence[torch.Tensor]) -> float:
     """Mean Rec. 709 luminance of the covered pixels (coverage > COVERED) of ``images`` [3, H, W] together; 1 when
     none is covered (nothing to hold the light of)."""
@@ -213,60 +178,12 @@ def scene_brightness(images: Sequence[torch.Tensor], coverages: Sequence[torch.T
     return total / count if count else 1.0
 
 
-def stroke_sigma(config: StylizeConfig) -> float:
-    """The synth backend's stroke scale in pixels of the proposal size (:func:`~.backends.synth_stroke_sigma`)."""
-    return synth_stroke_sigma(config.proposal.stroke_size)
-
-
 def style_size(config: StylizeConfig) -> tuple[int, int]:
     """(height, width) the painting is resampled to: the proposal size x Stroke Size, each side rounded."""
     return (
-        max(1, round(config.proposal.stroke_size * config.proposal.height)),
-        max(1, round(config.proposal.stroke_size * config.proposal.width)),
+        max(1, round(config.stroke_size * config.proposal_height)),
+        max(1, round(config.stroke_size * config.proposal_width)),
     )
-
-
-def _pixels(value: float) -> str:  # to 0.1 px, to 0.01 px below 2 px (a drawing's lines, the demo's splats)
-    return f"{value:.{2 if value < 2 else 1}f}".rstrip("0").rstrip(".")
-
-
-def stroke_size_note(
-    footprint: float | None, config: StylizeConfig, fit_scale: float = 1.0, ink_line: float | None = None
-) -> str | None:
-    """One line for the user when the splats are wider than the strokes (synth backend), else None.
-
-    ``footprint`` is :func:`~.fitting.splat_footprint` (pixels at the fit size); the strokes' scale is
-    :func:`stroke_sigma` (proposal pixels) x ``fit_scale`` (fit pixels per proposal pixel). The line suggests the
-    smallest of :data:`STROKE_SIZES` whose strokes reach the splats, or says that even the largest does not.
-    For ink, ``ink_line`` (the drawing's :func:`~.medium.line_width` in proposal pixels at Stroke Size 1) is the
-    scale instead, and no Stroke Size is suggested: larger ones drew the lines as spots on the demo scene and as
-    tones still on the bonsai and Luigi (bench/README.md, "Ink at larger Stroke Sizes").
-    """
-    if footprint is None or config.proposal.backend != "synth":
-        return None
-    size = config.proposal.stroke_size
-    if config.proposal.medium == "ink" and ink_line is not None:
-        lines = ink_line * size * fit_scale
-        if footprint <= lines or lines <= 0:  # no line at all: nothing to be wider than
-            return None
-        return (
-            f"the scene's splats are about {_pixels(footprint)} px wide at the fit size, wider than the drawing's "
-            f"lines at Stroke Size {size:g} ({_pixels(lines)} px): they will show its tones and hatching rather "
-            "than single lines"
-        )
-    per_size = stroke_sigma(config.with_(stroke_size=1.0)) * fit_scale  # stroke pixels at Stroke Size 1
-    strokes = per_size * size
-    if footprint <= strokes:
-        return None
-    line = (
-        f"the scene's splats are about {_pixels(footprint)} px wide at the fit size, wider than the strokes at "
-        f"Stroke Size {size:g} ({_pixels(strokes)} px): they will show the painting's colours and "
-        "regions more than its marks; "
-    )
-    larger = [candidate for candidate in STROKE_SIZES if candidate * per_size >= footprint]
-    if larger:
-        return line + f"Stroke Size {larger[0]:g} would let them carry the marks"
-    return line + f"even Stroke Size {STROKE_SIZES[-1]:g} ({_pixels(STROKE_SIZES[-1] * per_size)} px) is not enough"
 
 
 def _resize(image: torch.Tensor, height: int, width: int) -> torch.Tensor:  # [3, H, W]
@@ -313,21 +230,22 @@ class Stylization:
         record: RunRecord,
         mask: np.ndarray | None = None,  # [N] bool: the selection to stylize (None: every splat)
         device: str | torch.device | None = None,  # where the networks run, as stylize() says
-        log_optimum: bool = False,  # as stylize() says
+        dino_path: str = "",  # as stylize() says
+        plan: Plan | None = None,  # as stylize() says
+        near: float | None = None,  # as stylize() says
     ):
-        self.scene, self.config, self.hooks, self.record, self.mask = scene, config, hooks, record, mask
-        self.device, self.log_optimum = device, log_optimum
+        self.scene, self.hooks, self.record, self.mask = scene, hooks, record, mask
+        self.device, self.dino_path = device, dino_path
         self.style_rgb = _checked_style(style_rgb)
-        self.config = config = medium_config(config, self.style_rgb, hooks.say)
-        self.ramp = InkRamp(self.style_rgb) if config.proposal.medium == "ink" else None
-        check_run_settings(config)
-        self.size = (config.proposal.height, config.proposal.width)
-        torch.manual_seed(config.seed)
-        self.stages = stage_timesteps(
-            config.schedule.stages, config.schedule.updates_per_stage, config.schedule.ddim_steps
-        )
-        self.gammas = stage_gammas(config.schedule.strength, self.stages)
-        hooks.plan(len(self.stages), config.fit.post_steps > 0, prior_costs(config))
+        self.entry = backend(config.proposal)
+        self.medium = medium_for(config, self.style_rgb, hooks.say)
+        self.config, self.plan = config, plan = self.medium.settle(config, plan or config.plan(), self.entry, hooks.say)
+        check_run_settings(config, plan)
+        self.raster = config.raster(near)
+        self.size = (config.proposal_height, config.proposal_width)
+        self.stages = stage_timesteps(config.stages, plan.updates_per_stage)
+        self.gammas = stage_gammas(plan.schedule, self.stages)
+        hooks.plan(len(self.stages), self.post_steps() > 0, prior_costs(config, plan, self.entry))
 
     # --- Before the stages ---------------------------------------------------------------------------------
 
@@ -335,16 +253,20 @@ class Stylization:
         """Sec. 4.3: the active views by capped coverage (Eqs. 13-15), or the given ones."""
         hooks, nan = self.hooks, float("nan")
         if views is None:
-            hooks.model.set_counts(
-                cameras=len(cameras), views=min(len(cameras), self.config.views.max_views or len(cameras))
-            )
+            hooks.model.set_counts(cameras=len(cameras), views=min(len(cameras), self.config.max_views or len(cameras)))
 
             def each_camera(done: int, total: int) -> None:
                 hooks.report(0, done, total, "select", nan, f"selecting views: {done}/{total} cameras rendered")
 
             each_camera(0, len(cameras))
             self.selection = view_selection.select_active_views(
-                self.scene, cameras, self.config, progress=each_camera, cancel=hooks.cancel, mask=self.mask
+                self.scene,
+                cameras,
+                self.config,
+                progress=each_camera,
+                cancel=hooks.cancel,
+                mask=self.mask,
+                near=self.raster.near,
             )
         else:
             hooks.model.set_counts(cameras=0, views=len(views))
@@ -352,8 +274,7 @@ class Stylization:
             if bad or not views:
                 raise CameraError(f"active views {list(views)} do not index the {len(cameras)} cameras")
             self.selection = ActiveViews(list(views), [], [], "given")
-        chosen = [cameras[v] for v in self.selection.indices]
-        self.cameras = scaled_cameras(chosen, self.config.scene.render_scale)
+        self.cameras = [cameras[v] for v in self.selection.indices]
         self.names = [view_name(cameras[v], v) for v in self.selection.indices]
         hooks.model.set_counts(views=len(self.cameras))
         self.hooks.say(f"active views: {len(self.cameras)} of {len(cameras)} ({self.selection.reason})")
@@ -388,8 +309,8 @@ class Stylization:
         """The Gaussians the active views see, their fit state, renderer and optimiser; the base renders.
         ``each_view(done)`` after each view's render (the last one: the fit's set-up follows)."""
         config, say = self.config, self.hooks.say
-        raster = config.scene.raster()
-        seen, fast = seen_gaussians(self.scene, self.cameras, raster, config.fit.optimize_geometry, each_view)
+        raster = self.raster
+        seen, fast = seen_gaussians(self.scene, self.cameras, raster, config.optimize_geometry, each_view)
         left_out = len(self.scene) - seen.numel()
         if self.mask is not None:
             seen = seen[torch.from_numpy(self.mask)[seen]]
@@ -404,22 +325,22 @@ class Stylization:
                 f"optimising {seen.numel()} of {len(self.scene)} Gaussians "
                 f"({left_out} unseen by the active views are left out)"
             )
-        self.state = state = FitState.start(self.scene, seen, config.fit.optimize_geometry)
+        self.state = state = FitState.start(self.scene, seen, config.optimize_geometry)
         self.renderer = ViewRenderer(
-            self.scene, self.cameras, seen, raster, config.scene.sh_rest == "keep", fast, self.mask is not None
+            self.scene, self.cameras, seen, raster, config.sh_rest == "keep", fast, self.mask is not None
         )
-        if config.fit.solves_colors():
+        weights = FitLossWeights()
+        if not config.optimize_geometry:
             say(f"colour fit: bounded least squares over the {len(self.cameras)} active views, solved each stage")
             features = None  # Eq. 16's L1, DSSIM, TV and feature terms shape gradient fits only
         else:
-            features = feature_extractor(config.adam.lambda_feature, config.adam.dino_path, say, self.device or "cpu")
-        # Mean offsets are relative to the scene's extent (config docstring): lr and bound x extent.
+            features = feature_extractor(weights.feature, self.dino_path, say, self.device or "cpu")
+        # Mean offsets are relative to the scene's extent (optim.scene_extent): lr and bound x extent, so a scene of
+        # extent 1 gets the paper's absolute numbers and a scene scaled by s moves its splats s times as far.
         seen_numpy = seen.numpy()
-        self.extent = config.scene.scene_extent or scene_extent(
-            self.scene.means[seen_numpy], self.scene.log_scales[seen_numpy]
-        )
-        settings = config.adam.optimizer(self.extent)
-        if config.fit.optimize_geometry:
+        self.extent = scene_extent(self.scene.means[seen_numpy], self.scene.log_scales[seen_numpy])
+        settings = FitOptimizerSettings(extent=self.extent)
+        if config.optimize_geometry:
             say(
                 f"scene extent {self.extent:.6g}: mean offsets lr {settings.mean_lr:.3g}, "
                 f"bound +-{settings.scene_bounds.means:.3g}"
@@ -428,31 +349,16 @@ class Stylization:
         mean_params = [state.d_means] if state.d_means is not None else []
         optimizer = make_fit_optimizer([state.colors], geometry_params, settings, mean_params)
         base_renders = [r.clone() for r in self.renderer.all(state)]
-        solve = config.solve.settings()
-        if self.ramp is not None:
-            solve = replace(solve, first_view=INK_FIRST_VIEW)
-        self.solver = (
-            BoundedColorFit(
-                self.renderer,
-                state,
-                solve,
-                self.log_optimum,
-                config.solve.start == "views",
-                None if self.ramp is None else self.ramp.apply,
-            )
-            if config.fit.solves_colors()
-            else None
-        )
+        self.solver = None if config.optimize_geometry else BoundedColorFit(self.renderer, state, self.medium)
         self.fitter = MultiViewFit(
             self.renderer,
             state,
             optimizer,
             settings.scene_bounds,
-            config.adam.loss_weights(),
+            weights,
             features,
             base_renders,
-            config.ablation.pcgrad,
-            config.adam.pcgrad_eps,
+            self.plan.ablation.pcgrad,
         )
         return base_renders
 
@@ -461,12 +367,9 @@ class Stylization:
         wider than the strokes. The strokes' scale is in proposal pixels, the footprint in fit pixels: a proposal
         pixel is sqrt(fit pixels / proposal pixels) fit pixels, averaged over the views."""
         self.footprint = splat_footprint(self.renderer)
-        proposal_pixels = self.config.proposal.width * self.config.proposal.height
+        proposal_pixels = self.config.proposal_width * self.config.proposal_height
         fit_scale = float(np.mean([math.sqrt(c.width * c.height / proposal_pixels) for c in self.cameras]))
-        ink_line = None
-        if self.config.proposal.medium == "ink":  # the drawing's lines in proposal pixels at Stroke Size 1
-            ink_line = line_width(self.style_rgb) * self.config.proposal.height / self.style_rgb.shape[0]
-        note = stroke_size_note(self.footprint, self.config, fit_scale, ink_line)
+        note = self.medium.footprint_note(self.footprint, self.entry, self.config, fit_scale)
         if note:
             self.hooks.say(note)
 
@@ -487,25 +390,16 @@ class Stylization:
         self.coverages = [_resize(a[None].expand(3, -1, -1), *self.size)[0] for a in self.alphas]
         self.fitter.covered = [a > COVERED for a in self.alphas]  # its steps' RMSE over covered pixels, for progress
         self.brightness = scene_brightness(self.contents, self.coverages)
-        self.backend = _proposal_backend(self.config, self.device, self.brightness)
-        proposal = self.config.proposal
-        if proposal.backend == "synth" and proposal.scene_light > 0 and self.brightness < LIT_SCENE:
-            held = synth_light_weight(1.0, 1.0, self.brightness)
-            self.hooks.say(
-                f"the scene is dark (mean luminance {self.brightness:.2f}): "
-                + (f"{held:.0%} of" if held > 0 else "none of")
-                + f" the Scene Light asked for is held (all of it from {LIT_SCENE:g}): a dark capture's light held costs "
-                "its forms"
-            )
+        self.backend = self.entry.make(self.config, self.plan, self.brightness, self.device)
+        note = light_note(self.entry, self.config, self.brightness)
+        if note:
+            self.hooks.say(note)
 
     def _resume_or_encode(self, base_renders: list[torch.Tensor]) -> None:
         """Resume from a checkpoint of the same run, else encode the base renders; the style distances so far."""
         resumable = self.record.checkpoint is not None
-        key = (
-            run_id(self.config.run_values(), self.scene, self.cameras, self.style, self.contents, self.mask)
-            if resumable
-            else ""
-        )
+        settings = {**self.config.to_dict(), "plan": asdict(self.plan)}
+        key = run_id(settings, self.scene, self.cameras, self.style, self.contents, self.mask) if resumable else ""
         saved = self.record.resume(key, self.hooks.say)
         if saved is not None:
             with torch.no_grad():
@@ -532,48 +426,37 @@ class Stylization:
     # --- One stage ----------------------------------------------------------------------------------------
 
     def propose(self, stage: Stage) -> None:
-        """Sec. 4.1: attention-guided proposals, one fresh-Adam step per timestep, per view."""
+        """Sec. 4.1: attention-guided proposals, one fresh-Adam step per timestep, per view; each view guided by the
+        ones before it as the medium says (the guides' painting of the views, when the medium makes one, is the
+        fit's when the stage's targets are the proposals themselves)."""
         self.work = work = _StageWork(time.perf_counter())
         self.backend.prepare_stage(self.states, self.style, self.contents, self.coverages)
-        guided = self.backend.takes_guides and self.config.proposal.guide_weight > 0 and len(self.cameras) > 1
-        # Ink: the views paint the splats in turn, each guided by what the earlier ones painted (guides.py);
-        # paint: each view guided by the earlier views' proposals reprojected into it.
-        turn = (
-            ViewsInTurn(self.solver.views, INK_FIRST_VIEW, self.solver.settings)
-            if guided and self.ramp is not None
-            else None
-        )
-        if guided and turn is None:
-            depths = [self.renderer.depth(v, self.state) for v in range(len(self.cameras))]
-            done: list[torch.Tensor | None] = [None] * len(self.cameras)
+        guides = self.medium.guides(self)
         views = len(self.cameras)
         for i in range(views):
             self.hooks.check_cancel()
             message = f"painting view {i + 1}/{views} ({self.names[i]})"
             self.hooks.report(stage.index, i, views, "proposal", float("nan"), message)
-            guide, weight, camera = None, self.config.proposal.guide_weight, self.cameras[i]
-            if turn is not None:
-                guide = painted_guide(turn, i, camera, self.size, weight)
-            elif guided:
-                guide = view_guide(i, list(range(i)), done, depths, self.alphas, self.cameras, weight)
+            guide = guides.guide(i)
             kwargs = {"guide": guide} if guide is not None else {}
             self.states[i], energies = self.backend.propose(
                 self.states[i], stage.timesteps, self.style, self.contents[i], self.coverages[i], **kwargs
             )
-            if turn is not None:
-                proposal = self.backend.decode(self.states[i]).detach().float().cpu()
-                turn.paint(i, _resize(proposal, camera.height, camera.width))
-            elif guided:
-                done[i] = self.backend.decode(self.states[i]).detach().float()
+            guides.proposed(i, self.backend.decode(self.states[i]).detach().float().cpu())
             work.energies.append(energies[-1])
-        if turn is not None and self.gammas[stage.index - 1] == 1.0:  # the targets are the proposals: already painted
-            work.painted = turn
+        if self.gammas[stage.index - 1] == 1.0:  # the targets are the proposals: what the guides painted is the fit
+            work.painted = guides.painting()
         work.proposal_seconds = time.perf_counter() - work.started
+
+    def guided(self) -> bool:
+        """Whether the views' proposals are guided by the views before them (a backend that takes guides, two
+        views or more)."""
+        return self.backend.takes_guides and len(self.cameras) > 1
 
     def residual_targets(self, stage: Stage) -> list[torch.Tensor]:
         """Sec. 4.2, Eqs. 10-12: each view's render moved by gamma_n x the proposal's residual."""
         targets, gamma = [], self.gammas[stage.index - 1]
-        space = "logit" if self.config.ablation.logit_space else "image"
+        space = "logit" if self.plan.ablation.logit_space else "image"
         self.work.renders = self.renderer.all(self.state)
         for i, image in enumerate(self.work.renders):
             decoded = self.backend.decode(self.states[i]).detach().float().cpu()
@@ -594,7 +477,7 @@ class Stylization:
         n = stage.index
         self.work.closure = self._fit(targets, n, "fit", f"stage {n}, fit step")
         self.work.fitted_seconds = time.perf_counter() - self.work.started
-        feedback = "style distance, re-encoding the fitted views" if self.config.ablation.feedback else "style distance"
+        feedback = "style distance, re-encoding the fitted views" if self.plan.ablation.feedback else "style distance"
         self.hooks.report(n, 0, 1, "feedback", float("nan"), feedback)
 
     def _fit(self, targets, stage: int, phase: str, where: str, start: torch.Tensor | None = None) -> dict:
@@ -605,9 +488,8 @@ class Stylization:
         each round of a solve that of its colours (one colour-only render of the views, a few % of a round), after
         each Adam step that of the renders the step took."""
         before = self.work.renders or self.renderer.all(self.state)
-        optimum, optimum_seconds, disagreement = None, 0.0, {}
         if self.solver is not None:
-            rounds = self.config.solve.rounds
+            rounds = self.solver.settings.max_rounds
 
             def counter(index: int) -> str:
                 return f"colour solve round {index} (at most {rounds})"
@@ -623,8 +505,7 @@ class Stylization:
                 self.hooks.check_cancel()
 
             def each_view(done: int) -> None:
-                how = "the views painting in turn" if self.ramp is not None else "each splat from its best views"
-                message = f"{how}: {done}/{len(targets)} views solved alone"
+                message = f"{self.medium.name}: {done}/{len(targets)} views solved alone"
                 self.hooks.report(stage, solved_rounds[0], rounds, phase, float("nan"), message)
                 self.hooks.check_cancel()
 
@@ -638,22 +519,10 @@ class Stylization:
                     f"{error} at {where.rsplit(',', 1)[0]}, so the run stopped{self.record.kept_note()}"
                 ) from None
             self.work.losses = result.objectives
-            optimum_seconds = result.optimum_seconds
-            if result.disagreement is not None:
-                disagreement = {
-                    "view_residual_joint": result.disagreement.joint,
-                    "view_residual_single": result.disagreement.single,
-                    "view_disagreement": result.disagreement.ratio,
-                }
-            if result.least_squares is not None and result.least_squares is not result.colors:
-                squares = self.renderer.all(replace(self.state, colors=result.least_squares))
-                optimum = fit_residual(squares, targets, self.alphas)
-            elif result.least_squares is not None:  # the fit is the plain least-squares solve
-                optimum = "fit"
             done, total, counted = len(result.objectives) - 1, rounds, counter(len(result.objectives) - 1)
             iterations = result.iterations
         else:
-            steps = self.config.fit.fit_steps if phase == "fit" else self.config.fit.post_steps
+            steps = self.plan.fit_steps if phase == "fit" else self.plan.post_steps
             self.work.losses = self._fit_steps(targets, steps, stage, phase, where)
             done, total, counted = steps, steps, f"fit step {steps}/{steps}"
             iterations = steps
@@ -661,17 +530,12 @@ class Stylization:
         self.work.renders = after
         gap, left = fit_residual(before, targets, self.alphas), fit_residual(after, targets, self.alphas)
         self.hooks.report(stage, max(done, total), total, phase, left, counted)  # the fit's end: on to the next
-        if optimum == "fit":
-            optimum = left  # the solve's result is the joint least-squares optimum (to its tolerance)
         return {
             "target_gap": gap,
             "fit_residual": left,
-            "optimum_residual": optimum,
             "gap_closed": 1.0 - left / gap if gap > 0 else 1.0,
             "fit_moved": fit_residual(after, before, self.alphas),
             "fit_iterations": iterations,
-            "optimum_seconds": optimum_seconds,
-            **disagreement,
         }
 
     def feed_back(self, stage: Stage) -> None:
@@ -681,7 +545,7 @@ class Stylization:
         self.work.distance = self.style_distance(renders)
         self.distances.append(self.work.distance)
         improvement = stage_improvement(self.distances)
-        early_stop, moved = self.config.schedule.early_stop, self.work.closure.get("fit_moved")
+        early_stop, moved = self.plan.early_stop, self.work.closure.get("fit_moved")
         if early_stop > 0 and stage.index < len(self.stages) and self.backend.full_detail(stage.timesteps):
             if improvement is not None and improvement < early_stop:
                 self.work.stop_reason = (
@@ -693,7 +557,7 @@ class Stylization:
                     f"the stage's fit moved the views by {moved:.4f} RMSE (< {STILL_SCENE}); the remaining stages "
                     "are left out"
                 )
-        if self.config.ablation.feedback:
+        if self.plan.ablation.feedback:
             self.states = [self.backend.encode(_resize(r, *self.size)) for r in renders]
 
     def finish_stage(self, stage: Stage) -> bool:
@@ -717,7 +581,7 @@ class Stylization:
             "gaussians_optimised": int(self.state.seen.numel()),
             "scene_extent": self.extent,
             **(
-                {"footprint_px": self.footprint, "medium": self.config.proposal.medium, "brightness": self.brightness}
+                {"footprint_px": self.footprint, "medium": self.config.medium, "brightness": self.brightness}
                 if n == 1
                 else {}
             ),
@@ -737,8 +601,7 @@ class Stylization:
 
     def post_stage(self) -> None:
         """Covariance colour transfer of the renders toward the style, then fitting to it."""
-        steps = self.config.fit.post_steps
-        if steps <= 0:
+        if self.post_steps() <= 0:
             return
         self.hooks.report(len(self.stages) + 1, 0, 1, "post", float("nan"), "colour transfer")
         self.hooks.check_cancel()
@@ -773,8 +636,12 @@ class Stylization:
         )
         self.hooks.stage_done(lambda: self._stage_update(len(self.stages) + 1, {}))
 
+    def post_steps(self) -> int:
+        """The post stage's fit steps (0: no post stage)."""
+        return self.plan.post_steps
+
     def result(self) -> StylizeResult:
-        scene = result_scene(self.scene, self.state, self.config.scene.sh_rest == "zero", self.mask is not None)
+        scene = result_scene(self.scene, self.state, self.config.sh_rest == "zero", self.mask is not None)
         seconds = self.hooks.elapsed()
         log = self.record.entries
         last_loss = log[-1].get("fit_residual", float("nan")) if log else float("nan")  # the fit RMSE, as reported
@@ -803,8 +670,8 @@ class Stylization:
         return float(sliced_wasserstein_patches(small, self.style, masks=self.coverages, seed=self.config.seed).mean())
 
     def _stage_update(self, stage: int, images) -> StageUpdate:
-        geometry = self.config.fit.optimize_geometry
-        scene = result_scene(self.scene, self.state, self.config.scene.sh_rest == "zero", self.mask is not None)
+        geometry = self.config.optimize_geometry
+        scene = result_scene(self.scene, self.state, self.config.sh_rest == "zero", self.mask is not None)
         return StageUpdate(
             stage,
             scene.sh_dc,

@@ -1,4 +1,9 @@
-"""The painting's medium: paint, or ink on paper, and what a run does differently for ink.
+"""The painting's medium: paint, or ink on paper, each a strategy that owns what a run does differently for it.
+
+:class:`Paint` and :class:`Ink` each say what they change of the run's settings (:meth:`Medium.settle`, every
+change said to the user), how a view is guided by the views before it (:meth:`Medium.guides`), how the colour fit
+picks each splat's colour from the views (:meth:`Medium.pick_colors`) and what scale the splats are compared with
+(:meth:`Medium.mark_scale`). The loop calls them and names neither.
 
 A pen-and-ink drawing is lines 1-3 px wide on a light ground. Painted the way a painting is, its hatching
 comes out grey: each view places its lines in its own places, a few pixels off those of its neighbours, and
@@ -25,7 +30,7 @@ paintings of the bench have a chroma of 0.32-0.66 there, the generated line draw
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -36,6 +41,10 @@ if TYPE_CHECKING:
     import torch
 
 MEDIA = ("auto", "paint", "ink")
+PAINT = "paint"
+DEFAULT_MEDIUM = "auto"
+STROKE_SIZES = (1.5, 2.0, 3.0, 4.0)  # what the footprint note suggests, the smallest that reaches the splats
+PAINT_GUIDE_WEIGHT = 16.0  # a guided view keeps the strokes earlier views placed (docs/decisions/009-guides.md)
 INK_CHROMA = 0.15  # 90th percentile of a pixel's max - min over R, G, B, at most
 PAPER_LUMINANCE, INK_PAPER = 0.7, 0.4  # at least this share of the pixels this light
 INK_LUMINANCE, INK_DARK = 0.35, 0.03  # at least this share this dark
@@ -89,7 +98,7 @@ def resolve_medium(medium: str, style_rgb: np.ndarray) -> tuple[str, str | None]
     """("paint" or "ink", a line for the user or None): ``auto`` reads the painting, the others are taken as given."""
     if medium not in MEDIA:
         raise ConfigError(f"invalid setting: medium must be one of {', '.join(MEDIA)} (got {medium!r})")
-    if medium != "auto":
+    if medium != DEFAULT_MEDIUM:
         return medium, None
     reading = read_medium(style_rgb)
     if not reading.ink:
@@ -143,3 +152,229 @@ class InkRamp:
             t = ((luma - lo) / (hi - lo)).clamp(0.0, 1.0)[:, None]
             out = self.colors[index - 1] * (1 - t) + self.colors[index] * t
         return out.clamp(0.0, 1.0).to(colors.dtype)
+
+
+def _pixels(value: float) -> str:  # to 0.1 px, to 0.01 px below 2 px (a drawing's lines, the demo's splats)
+    return f"{value:.{2 if value < 2 else 1}f}".rstrip("0").rstrip(".")
+
+
+# --- the media as strategies -----------------------------------------------------------------------------------
+
+
+class Medium:
+    """What a run does for one medium: its settings, guides, colour pick and mark scale."""
+
+    name = ""
+    guide_weight = PAINT_GUIDE_WEIGHT
+
+    def settle(self, config, plan, entry, say):
+        """(config, plan) as this medium runs them, the config's medium resolved; every change of what the user set
+        is said through ``say``."""
+        raise NotImplementedError
+
+    def recolor(self, colors):  # [N, 3] -> [N, 3]: the fitted colours as this medium allows them
+        return colors
+
+    def guides(self, run):
+        """A :class:`ViewGuides` for one stage of ``run`` (the loop's Stylization)."""
+        raise NotImplementedError
+
+    def pick_colors(self, views, targets, joint, settings, each_view=None, painted=None):
+        """Each splat's colour from the views' targets and their joint fit ``joint`` [N, 3] (color_solve's terms)."""
+        raise NotImplementedError
+
+    def footprint_note(self, footprint: float | None, entry, config, fit_scale: float = 1.0) -> str | None:
+        """One line for the user when the splats are wider than the marks, else None. ``footprint`` is
+        ``fitting.splat_footprint`` (pixels at the fit size), ``fit_scale`` fit pixels per proposal pixel; a backend
+        with no stroke scale (``entry.stroke_sigma`` None) is never compared."""
+        return None
+
+
+class ViewGuides:
+    """One stage's guides: :meth:`guide` before view i proposes, :meth:`proposed` after it did."""
+
+    def guide(self, view: int):  # -> (image [3, h, w], weight [h, w]) or None
+        return None
+
+    def proposed(self, view: int, proposal) -> None:  # proposal: [3, h, w] at the proposal size
+        pass
+
+    def painting(self):  # the views' painting of the stage, when the guides made one the fit can take
+        return None
+
+
+class _ReprojectedGuides(ViewGuides):
+    """Each view guided by the earlier views' proposals reprojected into it (guides.view_guide)."""
+
+    def __init__(self, run, weight: float):
+        self.run, self.weight = run, weight
+        self.depths = [run.renderer.depth(v, run.state) for v in range(len(run.cameras))]
+        self.done = [None] * len(run.cameras)
+
+    def guide(self, view):
+        from .guides import view_guide
+
+        run = self.run
+        return view_guide(view, list(range(view)), self.done, self.depths, run.alphas, run.cameras, self.weight)
+
+    def proposed(self, view, proposal):
+        self.done[view] = proposal
+
+
+class Paint(Medium):
+    """A painting: each view guided by the earlier views' proposals; each splat from its best views (the plan's
+    ``best_views``) or the joint fit."""
+
+    name = PAINT
+
+    def __init__(self, best_views: float = 0.0):
+        self.best_views = best_views
+
+    def settle(self, config, plan, entry, say):
+        self.best_views = plan.best_views
+        return replace(config, medium=self.name), plan
+
+    def guides(self, run):
+        return _ReprojectedGuides(run, self.guide_weight) if run.guided() else ViewGuides()
+
+    def pick_colors(self, views, targets, joint, settings, each_view=None, painted=None):
+        from .color_solve import best_view_colors
+
+        if self.best_views <= 0.0:
+            return joint
+        return best_view_colors(views, targets, joint, settings, self.best_views, each_view)
+
+    def footprint_note(self, footprint, entry, config, fit_scale=1.0):
+        """Suggests the smallest of :data:`STROKE_SIZES` whose strokes reach the splats, or says that even the
+        largest does not."""
+        if footprint is None or entry.stroke_sigma is None:
+            return None
+        size = config.stroke_size
+        per_size = entry.stroke_sigma(1.0) * fit_scale  # stroke pixels at Stroke Size 1
+        strokes = per_size * size
+        if footprint <= strokes:
+            return None
+        line = (
+            f"the scene's splats are about {_pixels(footprint)} px wide at the fit size, wider than the strokes at "
+            f"Stroke Size {size:g} ({_pixels(strokes)} px): they will show the painting's colours and "
+            "regions more than its marks; "
+        )
+        larger = [candidate for candidate in STROKE_SIZES if candidate * per_size >= footprint]
+        if larger:
+            return line + f"Stroke Size {larger[0]:g} would let them carry the marks"
+        return line + f"even Stroke Size {STROKE_SIZES[-1]:g} ({_pixels(STROKE_SIZES[-1] * per_size)} px) is not enough"
+
+
+class _PaintedGuides(ViewGuides):
+    """Ink: the views paint the splats in turn (color_solve.ViewsInTurn); each view is guided by what the earlier
+    ones painted, as the splats show it (guides.painted_guide)."""
+
+    def __init__(self, run, weight: float, share: float):
+        from .color_solve import ViewsInTurn
+
+        self.run, self.weight = run, weight
+        self.turn = ViewsInTurn(run.solver.views, share, run.solver.settings)
+
+    def guide(self, view):
+        from .guides import painted_guide
+
+        return painted_guide(self.turn, view, self.run.cameras[view], self.run.size, self.weight)
+
+    def proposed(self, view, proposal):
+        camera = self.run.cameras[view]
+        self.turn.paint(view, _resized(proposal, camera.height, camera.width))
+
+    def painting(self):
+        return self.turn
+
+
+def _resized(image, height: int, width: int):  # [3, h, w] -> [3, height, width] in [0, 1]
+    import torch
+
+    if image.shape[-2:] == (height, width):
+        return image
+    return torch.nn.functional.interpolate(
+        image[None], size=(height, width), mode="bilinear", antialias=True, align_corners=False
+    )[0].clamp(0, 1)
+
+
+class Ink(Medium):
+    """A pen-and-ink drawing, drawn in turn (the module docstring): one stage of the backend's ladder when it has
+    one, no scene light, the first view's colours, every colour on the drawing's ramp."""
+
+    name = "ink"
+    guide_weight = INK_GUIDE_WEIGHT
+
+    def __init__(self, style_rgb: np.ndarray):
+        self.style_rgb = style_rgb
+        self.ramp = InkRamp(style_rgb)
+
+    def settle(self, config, plan, entry, say):
+        if config.optimize_geometry:
+            raise ConfigError(
+                "the ink medium paints the colours with the colour solve: turn geometry offsets off "
+                "(--no-geometry, or a colour-only preset), or use --medium paint"
+            )
+        config = replace(config, medium=self.name)
+        if config.scene_light > 0:
+            say(f"ink: Scene Light {config.scene_light:g} is not held (the scene's shading would grey the paper)")
+            config = replace(config, scene_light=0.0)
+        if entry.ink_passes:
+            say(f"ink: one stage of {entry.ink_passes} synthesis passes, coarse to fine, the views drawing in turn")
+            config = replace(config, stages=1)
+            plan = replace(plan, updates_per_stage=entry.ink_passes, schedule="fixed-1")
+        return config, plan
+
+    def recolor(self, colors):
+        return self.ramp.apply(colors)
+
+    def guides(self, run):
+        if not run.guided():
+            return ViewGuides()
+        return _PaintedGuides(run, self.guide_weight, INK_FIRST_VIEW)
+
+    def pick_colors(self, views, targets, joint, settings, each_view=None, painted=None):
+        from .color_solve import first_view_colors
+
+        if painted is not None:
+            return painted.over(joint)
+        return first_view_colors(views, targets, joint, settings, INK_FIRST_VIEW, each_view)
+
+    def footprint_note(self, footprint, entry, config, fit_scale=1.0):
+        """The splats against the drawing's lines (:func:`line_width`, at the proposal size x Stroke Size); no Stroke
+        Size is suggested: larger ones drew spots on the demo scene and tones still on the bonsai and Luigi."""
+        if footprint is None or entry.stroke_sigma is None:
+            return None
+        size = config.stroke_size
+        lines = line_width(self.style_rgb) * config.proposal_height / self.style_rgb.shape[0] * size * fit_scale
+        if footprint <= lines or lines <= 0:  # no line at all: nothing to be wider than
+            return None
+        return (
+            f"the scene's splats are about {_pixels(footprint)} px wide at the fit size, wider than the drawing's "
+            f"lines at Stroke Size {size:g} ({_pixels(lines)} px): they will show its tones and hatching rather "
+            "than single lines"
+        )
+
+
+def holds_scene_light(medium: str) -> bool:
+    """Whether a run of ``medium`` (a setting: auto, paint or ink) holds the scene's light (the panel greys Scene
+    Light otherwise)."""
+    return medium != Ink.name
+
+
+def sets_its_own_stages(medium: str, entry) -> bool:
+    """Whether ``medium`` with the backend ``entry`` runs a schedule of its own (the panel greys Stages then)."""
+    return medium == Ink.name and entry.ink_passes > 0
+
+
+def allows_geometry(medium: str) -> bool:
+    """Whether ``medium`` can fit geometry offsets (ink paints colours only)."""
+    return medium != Ink.name
+
+
+def medium_for(config, style_rgb: np.ndarray, say) -> Medium:
+    """The run's medium (``auto`` read from the painting, said when it reads as ink)."""
+    name, note = resolve_medium(config.medium, style_rgb)
+    if note:
+        say(note)
+    return Ink(style_rgb) if name == "ink" else Paint()

@@ -251,7 +251,7 @@ class ActiveViews:
 
 
 def scaled_cameras(cameras: Sequence[Camera], scale: float) -> list[Camera]:
-    """The cameras at ``scale`` times their resolution (the run's ``render_scale``)."""
+    """The cameras at ``scale`` times their resolution (the CLI's ``--render-scale``, the panel's Fit Scale)."""
     if scale == 1.0:
         return list(cameras)
     return [c.resized(max(1, round(c.width * scale)), max(1, round(c.height * scale))) for c in cameras]
@@ -301,6 +301,7 @@ def select_active_views(
     cancel: threading.Event | None = None,
     mask: np.ndarray | None = None,  # [N] bool: only these splats count (a stylized selection)
     device: str | torch.device = "cpu",  # where the coverage renders run
+    near: float | None = None,  # the near plane, for a scene in tiny units (None: the rasterizer's)
 ) -> ActiveViews:
     """Sec. 4.3: greedy capped-coverage selection (Eqs. 13-15) on the rasterizer's visibility weights.
 
@@ -310,20 +311,13 @@ def select_active_views(
     """
     if not cameras:
         raise CameraError("no cameras: add cameras to the scene, give a cameras file, or use orbit cameras")
-    w = visibility_matrix(
-        scene,
-        scaled_cameras(cameras, config.scene.render_scale),
-        config.scene.raster(),
-        progress=progress,
-        cancel=cancel,
-        device=device,
-    )
+    w = visibility_matrix(scene, cameras, config.raster(near), progress=progress, cancel=cancel, device=device)
     if mask is not None:  # splats outside the selection are seen by no view, as far as coverage goes
         keep = torch.from_numpy(np.asarray(mask, bool))[w.indices()[1]]
         w = torch.sparse_coo_tensor(  # a coalesced tensor's entries, some left out: still coalesced
             w.indices()[:, keep], w.values()[keep], w.shape, check_invariants=False, is_coalesced=True
         )
-    settings = config.views.selection()
+    settings = ViewSelectionSettings(max_views=config.max_views or None)
     chosen = select_views(w, settings)
     dense_max = w.to_dense().amax(0).numpy().astype(np.float64) if len(scene) * len(cameras) <= 5e7 else None
     if dense_max is None:
