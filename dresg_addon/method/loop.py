@@ -505,7 +505,7 @@ class Stylization:
                 self.hooks.check_cancel()
 
             def each_view(done: int) -> None:
-                message = f"{self.medium.name}: {done}/{len(targets)} views solved alone"
+                message = f"{self.medium.views_alone}: {done}/{len(targets)} views solved alone"
                 self.hooks.report(stage, solved_rounds[0], rounds, phase, float("nan"), message)
                 self.hooks.check_cancel()
 

@@ -166,6 +166,7 @@ class Medium:
 
     name = ""
     guide_weight = PAINT_GUIDE_WEIGHT
+    views_alone = ""  # what progress says while each view's colours are solved alone
 
     def settle(self, config, plan, entry, say):
         """(config, plan) as this medium runs them, the config's medium resolved; every change of what the user set
@@ -226,6 +227,7 @@ class Paint(Medium):
     ``best_views``) or the joint fit."""
 
     name = PAINT
+    views_alone = "each splat from its best views"  # what progress says while each view is solved alone
 
     def __init__(self, best_views: float = 0.0):
         self.best_views = best_views
@@ -304,6 +306,7 @@ class Ink(Medium):
 
     name = "ink"
     guide_weight = INK_GUIDE_WEIGHT
+    views_alone = "the views painting in turn"
 
     def __init__(self, style_rgb: np.ndarray):
         self.style_rgb = style_rgb
