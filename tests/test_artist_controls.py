@@ -102,7 +102,8 @@ def test_paint_scene_sets_how_much_of_the_scenes_light_the_synth_backend_holds()
     assert synth_light_weight(0.25, 1.0) == pytest.approx(0.5)
     assert synth_light_weight(0.5, 1.0) == synth_light_weight(1.0, 1.0) == 1.0
     assert synth_light_weight(0.8, 0.5) == pytest.approx(0.5) and synth_light_weight(1.0, 0.0) == 0.0
-    # half the light in the presets that paint with the synth backend, none in the paper's (bench/README.md)
+    # half the light in the presets that paint with the synth backend, none in the paper's
+    # (docs/decisions/003-scene-light.md)
     assert {name: config.proposal.scene_light for name, config in PRESETS.items()} == {
         "standard": 0.5,
         "preview": 0.5,

@@ -83,7 +83,7 @@ OLD_PRESETS = {
         **{
             "stages": 12,
             "updates_per_stage": 1,
-            "stroke_size": 1.5,  # 2.0 until the 18-pair run of 2026-11-27 (bench/README.md)
+            "stroke_size": 1.5,  # docs/decisions/002-stroke-size.md
             "post_steps": 0,
             "optimize_geometry": False,
             "max_views": 16,

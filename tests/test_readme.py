@@ -33,10 +33,7 @@ def test_the_readme_python_example_runs(tmp_path):
 
     assets = write_demo_assets(tmp_path)
     code = _python_example()
-    tiny = (
-        'preset("preview", stages=1, updates_per_stage=2, fit_steps=2, post_steps=1, proposal_width=32, '
-        "proposal_height=24, max_views=2)"
-    )
+    tiny = 'preset("preview", stages=1, proposal_width=32, proposal_height=24, max_views=2)'
     for old, new in (
         ('"scene.ply"', repr(str(assets["scene"]))),
         ('"cameras.json"', f"{str(assets['cameras'])!r}, width=64, height=48"),

@@ -154,7 +154,7 @@ def test_automatic_axes_come_from_the_splats_without_cameras(tmp_path):
     assert up == "-Y" and "no cameras found" in reason
 
 
-# Measured (bench/up_axis.py, bench/README.md "Up axis from the splats"): the truth of each scene, what the
+# Measured (bench/up_axis.py, its table in bench/README.md): the truth of each scene, what the
 # splats say and the margins they say it by.
 SHARED = {
     "bonsai-7k-mini.splat": ("-Y", True),  # COLMAP capture: the camera hint's up is (0.02, -0.76, -0.65)

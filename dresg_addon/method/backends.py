@@ -95,7 +95,7 @@ def synth_light_weight(scene_weight: float, scene_light: float, scene_brightness
     dark capture (the bonsai, 0.10-0.12) the light cost the forms and the painting: bonsai x Starry Night 0.0467 /
     0.0521 / 0.0664 patch SW with half of it against 0.0380 / 0.0405 / 0.0549 without, shapes 0.493 against 0.524;
     on the lit demo scene (0.40) and Luigi (0.43) it keeps the shading and the checkerboard the painting's marks
-    alone replace (bench/README.md, "The scene's light on a dark capture").
+    alone replace (docs/decisions/003-scene-light.md).
     """
     share = min(1.0, max(0.0, (scene_brightness - DARK_SCENE) / (LIT_SCENE - DARK_SCENE)))
     return scene_light * min(1.0, 2.0 * scene_weight) * share

@@ -393,7 +393,7 @@ class ViewsInTurn:
     and Goesele 2014); here the views also take turns, so a view sees, through :meth:`painted_image`, what the
     earlier ones painted exactly as the splats will show it, and can be guided to continue it. A line drawing's
     lines then line up across views to the width of a line; blended, or copied from view to view by reprojecting
-    images, they blur into grey or streaks (bench/README.md, "Ink").
+    images, they blur into grey or streaks (docs/decisions/010-ink-drawn-in-turn.md).
     """
 
     def __init__(self, views: LinearViews, share: float, settings: ColorSolveSettings, rounds: int = PAINT_ROUNDS):

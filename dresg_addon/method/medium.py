@@ -7,7 +7,7 @@ picks each splat's colour from the views (:meth:`Medium.pick_colors`) and what s
 
 A pen-and-ink drawing is lines 1-3 px wide on a light ground. Painted the way a painting is, its hatching
 comes out grey: each view places its lines in its own places, a few pixels off those of its neighbours, and
-the fit averages them (bench/README.md, "The line drawing: where its hatching goes"). What keeps them:
+the fit averages them (docs/decisions/010-ink-drawn-in-turn.md). What keeps them:
 
 - the views draw in turn (``color_solve.ViewsInTurn``): each splat is painted once, by the earliest view that
   draws it at least :data:`INK_FIRST_VIEW` of the most any view does, solved from that view alone with what
@@ -17,7 +17,7 @@ the fit averages them (bench/README.md, "The line drawing: where its hatching go
   instead, lines seen at a grazing angle came out as streaks;
 - one stage of :data:`INK_PASSES` synthesis passes, the synth backend's whole ladder from coarse to fine: a
   stage that starts from the last one's render redraws lines from what the splats blurred, and over stages
-  they became spots (bench/README.md, "Ink drawn in turn");
+  they became spots (docs/decisions/010-ink-drawn-in-turn.md);
 - no scene light held (``scene_light`` 0): the scene's shading would grey the paper;
 - every colour on the drawing's own ink-to-paper ramp (:class:`InkRamp`): a splat solved from one view may take
   any colour the other views cannot see, and one that is not the ink's or the paper's shows as a coloured speck.

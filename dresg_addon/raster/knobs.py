@@ -3,7 +3,7 @@
 Each entry changes one thing of the default :class:`RasterSettings` (no truncation, per-sample
 arithmetic in the colours' dtype); the benchmark and the report both measure these, so a user sees what
 each knob costs in error and in time. Tiles (slower, same image), per-pixel caps (up to 0.67 error for
-under 20% time) and float32 scans (5e-4 error for no time) were measured (bench/README.md) and removed.
+under 20% time) and float32 scans (5e-4 error for no time) were measured (bench/README.md, `raster.py`) and removed.
 """
 
 from __future__ import annotations

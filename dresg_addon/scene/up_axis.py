@@ -14,7 +14,7 @@ Two pieces of evidence, each measured along the file's three axes:
   5%, 10% and 20% of the height); which end is wider gives the sign.
 
 Both must be clear for a confident answer; otherwise the caller keeps its default (OpenCV / COLMAP: -Y up).
-Measured on the shared scenes and the demo in bench/README.md ("Up axis from the splats").
+Measured on the shared scenes and the demo in bench/README.md (`up_axis.py`).
 
 The six up axes (``UP_AXES``, ``UP_AXIS_LABELS``) and the one nearest a direction (``up_axis_for``) live here
 too: the camera files (``camera_io``) and the Blender splat object (``blender.splat_mesh``) share them.

@@ -11,7 +11,7 @@ the spinning threads take the cores the work needs. Measured on 2 cores, renderi
 448x320 through the CLI: 4.5 s quiet; next to another torch process doing small ops (whose threads
 spin too) 106 s by default, 9.5 s with a spin count of 2,000 and 6.9 s with passive waiting; next to
 a pure-Python busy loop 8.7 s by default and 8.8 s with 2,000 spins. Passive waiting costs ~15% on a
-quiet machine, 2,000 spins nothing measurable, so the policy sets 2,000 (bench/README.md, "Under load").
+quiet machine, 2,000 spins nothing measurable, so the policy sets 2,000 (docs/decisions/014-thread-policy.md).
 
 What the user set in the environment wins, and nothing changes once torch is loaded (libgomp reads
 these variables once). The load average cannot tell another job's load from this process's own recent

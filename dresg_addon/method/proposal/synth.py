@@ -468,8 +468,7 @@ def hold_light(
     The fusion's W / (1 + W) is about 0.2 in flat regions, where the painting's marks then set the light as well
     as the texture: a shaded sphere came out in random bright and dark patches, and the demo's proposals were
     further from the painting at a quarter of the size than the colour transfer (patch SW 0.092 against 0.080),
-    whose only advantage there is the scene's light (bench/README.md, "Stroke Size 1.5, and the scene's light
-    held").
+    whose only advantage there is the scene's light (docs/decisions/003-scene-light.md).
     """
     shift = luminance((content_low - low_pass(image, sigma))[None])[0]  # linear: L(a) - L(b) = L(a - b)
     return (image + weight * shift).clamp(0.0, 1.0)
