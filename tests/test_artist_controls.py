@@ -16,6 +16,7 @@ from dresg_addon import cli
 from dresg_addon.commands.stylize import config_from_args
 from dresg_addon.method import loop
 from dresg_addon.method.backends import (
+    BACKENDS,
     CONTENT_WEIGHT_CAP,
     DARK_SCENE,
     LIT_SCENE,
@@ -26,8 +27,8 @@ from dresg_addon.method.backends import (
 from dresg_addon.method.bookkeeping import RunHooks, RunRecord
 from dresg_addon.method.config import PRESETS, StylizeConfig, preset
 from dresg_addon.method.fitting import ViewRenderer, seen_gaussians, splat_footprint
-from dresg_addon.method.loop import Stylization, _proposal_backend, scene_brightness, stroke_size_note, stylize
-from dresg_addon.method.medium import MEDIUM_LABELS
+from dresg_addon.method.loop import Stylization, scene_brightness, stylize
+from dresg_addon.method.medium import MEDIUM_LABELS, Paint
 from dresg_addon.method.proposal.synth import SynthBackend, SynthSettings
 from dresg_addon.raster import RasterSettings
 from dresg_addon.raster.projection import project_gaussians, projected_mean_variance, splat_covariances
@@ -40,7 +41,7 @@ from dresg_addon.util.errors import ConfigError
 
 @pytest.mark.parametrize("value", [0.25, 1.0, 2.5, 8.0])
 def test_stroke_size_in_range_is_accepted(value):
-    assert StylizeConfig().with_(stroke_size=value).proposal.stroke_size == value
+    assert StylizeConfig().with_(stroke_size=value).stroke_size == value
 
 
 @pytest.mark.parametrize("value", [0.0, 0.2, 8.5, -1.0, math.nan, math.inf])
@@ -52,7 +53,7 @@ def test_stroke_size_out_of_range_is_one_line_config_error(value):
 
 @pytest.mark.parametrize("value", [0.0, 0.5, 1.0])
 def test_scene_weight_in_range_is_accepted(value):
-    assert StylizeConfig().with_(scene_weight=value).proposal.scene_weight == value
+    assert StylizeConfig().with_(scene_weight=value).scene_weight == value
 
 
 @pytest.mark.parametrize("name", ["scene_weight", "scene_light"])
@@ -65,13 +66,18 @@ def test_scene_weight_and_light_out_of_range_are_one_line_config_errors(name, va
 
 def test_defaults_and_presets_keep_the_content_weights_they_had():
     assert not hasattr(StylizeConfig(), "content_weight")
-    assert StylizeConfig().proposal.stroke_size == 1.0 and StylizeConfig().proposal.scene_weight == 0.5
-    assert sd15_content_weight(StylizeConfig().proposal.scene_weight) == pytest.approx(0.15)  # the paper's w_c
+    assert PRESETS["paper"].stroke_size == 1.0 and PRESETS["paper"].scene_weight == 0.5
+    assert sd15_content_weight(PRESETS["paper"].scene_weight) == pytest.approx(0.15)  # the paper's w_c
     for name in ("standard", "preview"):
-        assert synth_content_weight(PRESETS[name].proposal.scene_weight) == pytest.approx(1.0)  # the presets' old w_c
+        assert synth_content_weight(PRESETS[name].scene_weight) == pytest.approx(1.0)  # the presets' old w_c
 
 
 # --- Paint <-> Scene: the backends' content weights -----------------------------------------------------
+
+
+def _proposal_backend(config, plan=None, scene_brightness: float = 1.0):
+    """The backend a run of ``config`` (and ``plan``: the preset's by default) builds."""
+    return BACKENDS[config.proposal].make(config, plan or config.plan(), scene_brightness)
 
 
 def test_scene_weight_maps_to_each_backends_content_weight():
@@ -89,11 +95,12 @@ def test_scene_weight_maps_to_each_backends_content_weight():
 
 @pytest.mark.parametrize(("scene_weight", "expected"), [(0.0, 0.0), (0.5, 1.0), (1.0, CONTENT_WEIGHT_CAP)])
 def test_the_synth_backend_gets_the_mapped_weight_and_the_stroke_scale(scene_weight, expected):
-    backend = _proposal_backend(StylizeConfig().with_(scene_weight=scene_weight, stroke_size=3.0), None)
+    backend = _proposal_backend(StylizeConfig().with_(scene_weight=scene_weight, stroke_size=3.0))
     assert isinstance(backend, SynthBackend)
     assert backend.settings.content_weight == pytest.approx(expected)
     assert backend.settings.content_sigma == pytest.approx(3.0 * SynthSettings.content_sigma)
-    ablated = _proposal_backend(StylizeConfig().with_(scene_weight=scene_weight, use_content_query=False), None)
+    config = StylizeConfig().with_(scene_weight=scene_weight)
+    ablated = _proposal_backend(config, config.plan().with_(use_content_query=False))
     assert ablated.settings.content_weight == 0.0
 
 
@@ -104,22 +111,21 @@ def test_paint_scene_sets_how_much_of_the_scenes_light_the_synth_backend_holds()
     assert synth_light_weight(0.8, 0.5) == pytest.approx(0.5) and synth_light_weight(1.0, 0.0) == 0.0
     # half the light in the presets that paint with the synth backend, none in the paper's
     # (docs/decisions/003-scene-light.md)
-    assert {name: config.proposal.scene_light for name, config in PRESETS.items()} == {
+    assert {name: config.scene_light for name, config in PRESETS.items()} == {
         "standard": 0.5,
         "preview": 0.5,
         "paper": 0.0,
         "cpu": 0.0,
     }
-    held = _proposal_backend(preset("standard", scene_light=1.0), None)
-    assert (
-        held.settings.light_weight == 1.0 and _proposal_backend(preset("standard"), None).settings.light_weight == 0.5
-    )
-    assert _proposal_backend(preset("standard", scene_light=0.0), None).settings.light_weight == 0.0
+    held = _proposal_backend(preset("standard", scene_light=1.0))
+    assert held.settings.light_weight == 1.0 and _proposal_backend(preset("standard")).settings.light_weight == 0.5
+    assert _proposal_backend(preset("standard", scene_light=0.0)).settings.light_weight == 0.0
     for changes in ({"scene_weight": 0.2}, {"scene_light": 0.5, "scene_weight": 0.9}):
-        backend = _proposal_backend(preset("standard", **{"scene_light": 1.0, **changes}), None)
+        backend = _proposal_backend(preset("standard", **{"scene_light": 1.0, **changes}))
         expected = synth_light_weight(**{"scene_weight": 0.5, "scene_light": 1.0, **changes})
         assert backend.settings.light_weight == pytest.approx(expected)
-    ablated = _proposal_backend(preset("standard", scene_light=1.0, use_content_query=False), None)
+    no_content = PRESETS["standard"].plan().with_(use_content_query=False)
+    ablated = _proposal_backend(preset("standard", scene_light=1.0), no_content)
     assert ablated.settings.light_weight == 0.0
 
 
@@ -128,13 +134,14 @@ def test_a_dark_scene_holds_none_of_its_light_and_still_matches_the_painting_onc
     assert synth_light_weight(0.5, 1.0, LIT_SCENE) == synth_light_weight(0.5, 1.0, 0.9) == 1.0
     assert synth_light_weight(0.5, 1.0, (DARK_SCENE + LIT_SCENE) / 2) == pytest.approx(0.5)
     assert synth_light_weight(0.5, 1.0) == 1.0  # no brightness given: a lit scene
-    dark = _proposal_backend(preset("standard"), None, scene_brightness=0.1).settings
-    lit = _proposal_backend(preset("standard"), None, scene_brightness=0.4).settings
+    dark = _proposal_backend(preset("standard"), scene_brightness=0.1).settings
+    lit = _proposal_backend(preset("standard"), scene_brightness=0.4).settings
     assert (dark.light_weight, dark.final_match) == (0.0, True)
     assert (lit.light_weight, lit.final_match) == (0.5, True)
-    unasked = _proposal_backend(preset("standard", scene_light=0.0), None, scene_brightness=0.4).settings
+    unasked = _proposal_backend(preset("standard", scene_light=0.0), scene_brightness=0.4).settings
     assert (unasked.light_weight, unasked.final_match) == (0.0, False)  # as the paper's presets run
-    ablated = _proposal_backend(preset("standard", use_content_query=False), None, scene_brightness=0.4).settings
+    no_content = PRESETS["standard"].plan().with_(use_content_query=False)
+    ablated = _proposal_backend(preset("standard"), no_content, scene_brightness=0.4).settings
     assert (ablated.light_weight, ablated.final_match) == (0.0, False)
 
 
@@ -146,11 +153,6 @@ def test_scene_brightness_is_the_mean_luminance_of_the_covered_pixels():
     assert scene_brightness([image, image], [coverage, coverage]) == pytest.approx(0.8)
     assert scene_brightness([image], [torch.zeros(4, 6)]) == 1.0  # nothing covered: nothing to hold
     assert scene_brightness([], []) == 1.0
-
-
-def test_a_checkpoint_written_before_the_light_hold_keeps_its_run_id():
-    assert "scene_light" not in StylizeConfig().run_values()
-    assert preset("standard", scene_light=1.0).run_values()["scene_light"] == 1.0
 
 
 # --- Stroke Size: the painting the backend and the style distance see ------------------------------------
@@ -177,7 +179,7 @@ def _recorded_run(monkeypatch, stroke_size: float):
     monkeypatch.setattr(SynthBackend, "prepare_stage", prepare_stage)
     monkeypatch.setattr(loop, "sliced_wasserstein_patches", distance)
     config = TINY.with_(stages=1, updates_per_stage=1, post_steps=1, stroke_size=stroke_size)
-    result = stylize(sphere_scene(), ring_cameras(), textured_style(60, 80), config)
+    result = stylize(sphere_scene(), ring_cameras(), textured_style(60, 80), config.config, plan=config.plan)
     assert result.log[0]["footprint_px"] > 0 and "footprint_px" not in result.log[-1]  # the first stage's entry only
     return seen
 
@@ -208,19 +210,19 @@ def _stylize_args(*extra: str):
 
 def test_cli_flags_parse_into_the_config():
     config = config_from_args(_stylize_args("--stroke-size", "2.5", "--paint-scene", "0.8"))
-    assert (config.proposal.stroke_size, config.proposal.scene_weight) == (2.5, 0.8)
+    assert (config.stroke_size, config.scene_weight) == (2.5, 0.8)
     default = config_from_args(_stylize_args())
-    assert (default.proposal.stroke_size, default.proposal.scene_weight) == (
-        preset("standard").proposal.stroke_size,
-        preset("standard").proposal.scene_weight,
+    assert (default.stroke_size, default.scene_weight) == (
+        preset("standard").stroke_size,
+        preset("standard").scene_weight,
     )
     with pytest.raises(ConfigError, match="scene_weight"):
         config_from_args(_stylize_args("--paint-scene", "1.5"))
     with pytest.raises(ConfigError, match="stroke_size"):
         config_from_args(_stylize_args("--stroke-size", "9"))
-    assert default.proposal.medium == "auto"
-    assert config_from_args(_stylize_args("--medium", "ink")).proposal.medium == "ink"
-    assert config_from_args(_stylize_args("--preset", "paper", "--medium", "auto")).proposal.medium == "auto"
+    assert default.medium == "auto"
+    assert config_from_args(_stylize_args("--medium", "ink")).medium == "ink"
+    assert config_from_args(_stylize_args("--preset", "paper", "--medium", "auto")).medium == "auto"
 
 
 def test_the_old_content_weight_flag_is_gone(capsys):
@@ -330,8 +332,13 @@ def _px(value: float) -> str:
     return f"{value:.{2 if value < 2 else 1}f}".rstrip("0").rstrip(".")
 
 
+def stroke_size_note(footprint, config, fit_scale: float = 1.0):
+    """The note a painting's run gives (medium.Paint) for splats ``footprint`` px wide."""
+    return Paint().footprint_note(footprint, BACKENDS[config.proposal], config, fit_scale)
+
+
 def test_the_note_suggests_the_smallest_stroke_size_that_reaches_the_splats():
-    config = StylizeConfig()
+    config = StylizeConfig().with_(stroke_size=1.0)
     note = stroke_size_note(2.85 * STROKE, config)
     assert note.startswith(
         f"the scene's splats are about {_px(2.85 * STROKE)} px wide at the fit size, wider than the strokes at "
@@ -347,8 +354,16 @@ def test_the_note_suggests_the_smallest_stroke_size_that_reaches_the_splats():
     assert stroke_size_note(None, config) is None
 
 
-def test_for_ink_the_note_weighs_the_splats_against_the_drawings_lines_and_suggests_no_stroke_size():
+def test_for_ink_the_note_weighs_the_splats_against_the_drawings_lines_and_suggests_no_stroke_size(monkeypatch):
+    from dresg_addon.method import medium
+
     ink = StylizeConfig().with_(medium="ink", stroke_size=2.0)
+
+    def stroke_size_note(footprint, config, fit_scale=1.0, ink_line=0.0):  # lines ink_line px at Stroke Size 1
+        monkeypatch.setattr(medium, "line_width", lambda _style: ink_line)
+        drawing = np.ones((config.proposal_height, 8, 3), np.float32)  # the drawing's pixels: the proposal's
+        return medium.Ink(drawing).footprint_note(footprint, BACKENDS[config.proposal], config, fit_scale)
+
     note = stroke_size_note(3.0, ink, ink_line=1.0)  # lines 2 px wide at Stroke Size 2
     assert note == (
         "the scene's splats are about 3 px wide at the fit size, wider than the drawing's lines at Stroke Size 2 "
@@ -358,7 +373,7 @@ def test_for_ink_the_note_weighs_the_splats_against_the_drawings_lines_and_sugge
     close = stroke_size_note(1.14, ink, ink_line=0.54)  # sub-pixel widths that 0.1 px would show as equal
     assert "about 1.14 px wide" in close and "(1.08 px)" in close
     assert stroke_size_note(3.0, ink, fit_scale=2.0, ink_line=1.0) is None  # lines 4 fit pixels wide
-    assert "the strokes at" in stroke_size_note(3.5 * STROKE, ink)  # no line width: the strokes' scale
+    assert stroke_size_note(3.0, ink.with_(proposal="sd15"), ink_line=1.0) is None  # no stroke scale
     assert stroke_size_note(3.0, ink, ink_line=0.0) is None  # a drawing with no ink has no lines to be wider than
 
 
@@ -367,8 +382,9 @@ def test_a_run_says_when_the_splats_are_wider_than_the_strokes(sigma_px, says):
     messages: list[str] = []
     config = TINY.with_(stages=1, post_steps=0, proposal_width=96, proposal_height=72)  # the fit size: 1 to 1
     cameras = [plane_camera(fx=100.0, width=96, height=72), plane_camera("again", fx=100.0, width=96, height=72)]
+    hooks = RunHooks(messages=messages.append)
     run = Stylization(
-        plane_scene(sigma_px, fx=100.0), textured_style(), config, RunHooks(messages=messages.append), RunRecord()
+        plane_scene(sigma_px, fx=100.0), textured_style(), config.config, hooks, RunRecord(), plan=config.plan
     )
     run.select_views(cameras, None)
     run.prepare(None)  # the note comes right after the fit is set up
@@ -386,6 +402,6 @@ def test_every_preset_has_a_label_and_a_description_read_from_its_settings():
     for name, config in PRESETS.items():
         text = preset_description(name)
         assert preset_label(name) and text.endswith(PRESET_INFO[name][2][1:])
-        assert f"{config.schedule.stages} stages" in text
-        assert (f"up to {config.views.max_views} views" in text) == bool(config.views.max_views)
-        assert ("colours only" in text) == (not config.fit.optimize_geometry)
+        assert f"{config.stages} stages" in text
+        assert (f"up to {config.max_views} views" in text) == bool(config.max_views)
+        assert ("colours only" in text) == (not config.optimize_geometry)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import importlib.util
 import inspect
 import math
-from dataclasses import fields, replace
+from dataclasses import replace
 
 import pytest
 import torch
@@ -15,15 +15,13 @@ from dresg_addon import cli
 from dresg_addon.method import backends
 from dresg_addon.method.backends import (
     BACKENDS,
-    BackendSettings,
     SD15Costs,
     duration,
     estimate_cpu_seconds,
     slow_note,
     synth_content_weight,
 )
-from dresg_addon.method.config import PROPOSALS, StylizeConfig, check_run_settings, preset
-from dresg_addon.method.loop import _proposal_backend
+from dresg_addon.method.config import StylizeConfig, check_run_settings, preset
 from dresg_addon.method.proposal.synth import SynthBackend, SynthSettings
 from dresg_addon.util.errors import ConfigError
 
@@ -31,19 +29,21 @@ from dresg_addon.util.errors import ConfigError
 
 
 @pytest.mark.parametrize("name", list(BACKENDS))
-def test_every_backend_declares_label_description_settings_and_cost(name):
+def test_every_backend_declares_label_description_support_and_cost(name):
     entry = BACKENDS[name]
     assert entry.name == name and entry.label and entry.description and "\n" not in entry.description
-    assert entry.settings and set(entry.settings) <= {f.name for f in fields(BackendSettings)}
-    # the factory takes exactly the settings the entry declares, so a run gives it nothing else
-    assert list(inspect.signature(entry.build).parameters) == list(entry.settings)
+    # the factory reads the run's settings, plan and scene brightness, and where a network runs
+    assert len(inspect.signature(entry.build).parameters) == 4
+    if entry.stroke_sigma is not None:
+        assert entry.stroke_sigma(1.0) > 0 and entry.stroke_sigma(2.0) == pytest.approx(2 * entry.stroke_sigma(1.0))
+    assert entry.ink_passes >= 0 and entry.proposal_cost >= 0 and entry.size_multiple >= 1
     paper = entry.cpu_seconds(16, 20, 10, 448, 320)
     assert math.isfinite(paper) and paper > 0
     assert entry.cpu_seconds(17, 20, 10, 448, 320) > paper and entry.cpu_seconds(16, 20, 10, 224, 160) < paper
 
 
 def test_the_config_and_the_cli_offer_the_registered_backends(capsys):
-    assert tuple(BACKENDS) == PROPOSALS and StylizeConfig().proposal.backend in BACKENDS
+    assert StylizeConfig().proposal == backends.DEFAULT_BACKEND and backends.DEFAULT_BACKEND in BACKENDS
     with pytest.raises(ConfigError, match="proposal must be one of synth, sd15"):
         StylizeConfig().with_(proposal="nope")
     with pytest.raises(SystemExit):
@@ -103,12 +103,15 @@ def test_unknown_backend_names_the_choices():
     [{}, {"stroke_size": 2.0, "scene_weight": 0.3, "seed": 3}, {"use_content_query": False, "scene_weight": 1.0}],
 )
 def test_the_synth_backend_gets_the_same_settings_and_proposes_the_same_pixels(changes):
-    config = StylizeConfig().with_(**changes)
-    built = _proposal_backend(config, None)
-    # What loop._proposal_backend passed before the registry, written out.
-    weight = synth_content_weight(config.proposal.scene_weight) if config.ablation.use_content_query else 0.0
+    changes = dict(changes)
+    content_query = changes.pop("use_content_query", True)
+    config = preset("cpu", **changes)  # no scene light: the content fusion alone
+    plan = config.plan().with_(use_content_query=content_query)
+    built = BACKENDS["synth"].make(config, plan)
+    # What the loop passed before the registry, written out.
+    weight = synth_content_weight(config.scene_weight) if content_query else 0.0
     before = SynthBackend(
-        seed=config.seed, content_weight=weight, content_sigma=SynthSettings.content_sigma * config.proposal.stroke_size
+        seed=config.seed, content_weight=weight, content_sigma=SynthSettings.content_sigma * config.stroke_size
     )
     assert (
         built.settings
@@ -145,7 +148,7 @@ def test_sd15_cpu_estimate_scales_with_work_and_warns_of_hours():
 def test_the_slow_note_is_for_gpu_backends_on_the_cpu_with_their_estimate():
     paper = preset("paper", proposal="sd15", model_path="x")
     note = slow_note(paper, "cpu")
-    seconds = estimate_cpu_seconds(16, paper.schedule.stages, paper.schedule.updates_per_stage, 448, 320)
+    seconds = estimate_cpu_seconds(16, paper.stages, paper.plan().updates_per_stage, 448, 320)
     assert note == (
         f"sd15 on this CPU takes about {duration(seconds)} for this schedule (estimate); the synth backend takes minutes"
     )

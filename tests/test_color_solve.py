@@ -11,6 +11,7 @@ import torch
 from test_pipeline import away_camera, ring_cameras, sphere_scene
 
 from dresg_addon.method.color_solve import ColorSolveSettings, LinearViews, projected_solve, solve_colors
+from dresg_addon.method.medium import Ink
 from dresg_addon.raster import ColorOnlyRenderer, geometry_tensors
 from dresg_addon.scene.gaussians import GaussianScene
 from dresg_addon.util.errors import ConfigError, NumericalError
@@ -184,45 +185,19 @@ def test_an_anchored_solve_reaches_the_dense_proximal_optimum_and_keeps_what_the
         return objective(views, colors, targets) + weight * float((colors.double() - start.double()).square().sum())
 
     settings = ColorSolveSettings(tolerance=1e-6, max_rounds=40, anchor=mu)
-    result = solve_colors(views, targets, start, settings, optimum=True)
+    result = solve_colors(views, targets, start, settings)
     assert anchored(result.colors) <= 1.001 * anchored(reference.float())
     # A splat the views see a twentieth as much as the average one hardly moves; the best-seen ones move most.
     faint, bright = views.energy < 0.05 * views.energy.mean(), views.energy > 2 * views.energy.mean()
     assert faint.any() and bright.any()
     moved = (result.colors - start).abs().sum(1)
     assert float(moved[faint].max()) < 0.1 < float(moved[bright].mean())
-    # The plain optimum, solved on request, fits the views closer than the anchored fit and as the plain solve.
+    # The plain optimum fits the views closer than the anchored fit.
     plain = solve_colors(views, targets, start, replace(settings, anchor=0.0))
-    assert result.least_squares is not None and plain.least_squares is plain.colors
-    assert objective(views, result.least_squares, targets) <= objective(views, result.colors, targets)
-    assert objective(views, result.least_squares, targets) == pytest.approx(
-        objective(views, plain.colors, targets), rel=0.01
-    )
-    assert solve_colors(views, targets, start, settings).least_squares is None  # not asked: not solved
+    assert objective(views, plain.colors, targets) <= objective(views, result.colors, targets)
     # Stiff: an anchor a million times the views' weight keeps every colour, finite.
     held = solve_colors(views, targets, start, replace(settings, anchor=1e6))
     assert torch.isfinite(held.colors).all() and float((held.colors - start).abs().max()) < 1e-3
-
-
-def test_view_disagreement_is_one_when_the_views_agree_and_grows_when_their_marks_differ(small):
-    _, views = small
-    truth = torch.from_numpy(np.random.default_rng(6).uniform(0.2, 0.8, (80, 3)).astype(np.float32))
-    settings = ColorSolveSettings(tolerance=1e-6, max_rounds=30, cg_iterations=16)
-    agreeing = views.images(truth)  # one set of colours shows every target
-    result = solve_colors(views, agreeing, torch.full((80, 3), 0.5), settings, optimum=True)
-    assert result.disagreement.ratio == pytest.approx(1.0, abs=0.05)
-    assert max(result.disagreement.joint) < 0.02
-    # Each view painted with its own marks: the joint optimum averages them, each view alone keeps its own.
-    rng = np.random.default_rng(7)
-    painted = [
-        views.images(torch.from_numpy(rng.uniform(0, 1, (80, 3)).astype(np.float32)))[v] for v in range(len(views))
-    ]
-    result = solve_colors(views, painted, torch.full((80, 3), 0.5), settings, optimum=True)
-    single, joint = result.disagreement.single, result.disagreement.joint
-    assert len(single) == len(joint) == len(views)
-    assert all(s <= j + 1e-4 for s, j in zip(single, joint))
-    assert result.disagreement.ratio > 2.0
-    assert solve_colors(views, painted, torch.full((80, 3), 0.5), settings).disagreement is None
 
 
 def test_the_view_average_of_a_flat_render_is_its_colour_on_every_splat_drawn_and_the_fallback_elsewhere():
@@ -309,8 +284,8 @@ def test_best_views_keep_the_joint_fit_where_the_views_agree_and_each_views_mark
     soft = best_view_colors(views, painted, joint, settings, 4.0)
     assert float((soft - joint).abs().mean()) > 0.01
     assert float((soft - sharpest)[clear].abs().mean()) < float((joint - sharpest)[clear].abs().mean())
-    via = solve_colors(views, painted, start, replace(settings, best_views=4.0)).colors
-    torch.testing.assert_close(via, soft)
+    via = solve_colors(views, painted, start, settings, pick=lambda v, t, j: best_view_colors(v, t, j, settings, 4.0))
+    torch.testing.assert_close(via.colors, soft)
 
 
 def test_best_views_leave_splats_no_view_draws_alone_and_refuse_a_sharpness_that_cannot_weigh():
@@ -328,8 +303,6 @@ def test_best_views_leave_splats_no_view_draws_alone_and_refuse_a_sharpness_that
     for sharpness in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ConfigError, match="sharpness"):
             best_view_colors(views, targets, joint, settings, sharpness)
-    with pytest.raises(ConfigError, match="best_views"):
-        ColorSolveSettings(best_views=-1.0)
 
 
 def test_a_map_of_only_some_columns_draws_those_splats_and_no_others(small):
@@ -402,12 +375,15 @@ def test_views_in_turn_hold_what_earlier_views_painted_and_reach_targets_that_ag
     assert int(full.sum()) > 10
     torch.testing.assert_close(image[full] * coverage[full], render[full], atol=1e-3, rtol=0)
     assert torch.isfinite(image).all() and float(share.min()) >= 0.0 and float(share.max()) <= 1.0
-    via = solve_colors(views, painted, torch.full((n, 3), 0.5), replace(settings, first_view=0.5, best_views=4.0))
+    # Ink's pick: each splat from its first view; a painting already made of these targets is taken as it is.
+    ink = Ink(np.ones((8, 8, 3), np.float32))
+    via = solve_colors(
+        views, painted, torch.full((n, 3), 0.5), settings, pick=lambda v, t, j: ink.pick_colors(v, t, j, settings)
+    )
     joint = solve_colors(views, painted, torch.full((n, 3), 0.5), settings).colors
     torch.testing.assert_close(via.colors, first_view_colors(views, painted, joint, settings, 0.5))
-    # A painting already made of these targets (ink's proposals) is taken as it is, not made again.
-    taken = solve_colors(views, painted, torch.full((n, 3), 0.5), replace(settings, first_view=0.5), painted=turn)
-    torch.testing.assert_close(taken.colors, via.colors, atol=1e-6, rtol=0)
+    taken = ink.pick_colors(views, painted, joint, settings, painted=turn)
+    torch.testing.assert_close(taken, via.colors, atol=1e-6, rtol=0)
 
 
 def test_the_first_view_leaves_splats_no_view_draws_alone_and_refuses_a_share_outside_0_1():
@@ -424,8 +400,6 @@ def test_the_first_view_leaves_splats_no_view_draws_alone_and_refuses_a_share_ou
     for share in (0.0, -0.5, 1.5, float("nan")):
         with pytest.raises(ConfigError, match="share"):
             first_view_colors(views, targets, joint, ColorSolveSettings(), share)
-    with pytest.raises(ConfigError, match="first_view"):
-        ColorSolveSettings(first_view=2.0)
 
 
 def test_views_in_turn_stay_finite_with_a_view_that_sees_nothing_and_targets_at_the_box():

@@ -83,16 +83,17 @@ def test_a_painted_guide_shows_what_earlier_views_painted_where_their_splats_cov
 
 
 @pytest.mark.slow
-def test_guided_proposals_agree_across_views_better_than_unguided_ones():
+def test_guided_proposals_agree_across_views_better_than_unguided_ones(monkeypatch):
+    from dresg_addon.method.medium import Paint
+
     scene, cameras = sphere_scene(n=600), ring_cameras(6)
     depths, alphas = renders(scene, cameras)
     config = TINY.with_(stages=1, post_steps=0, proposal_width=48, proposal_height=32)
 
     def disagreement(guide_weight: float) -> float:
+        monkeypatch.setattr(Paint, "guide_weight", guide_weight)
         updates = []
-        stylize(
-            scene, cameras, textured_style(32, 48), config.with_(guide_weight=guide_weight), on_stage=updates.append
-        )
+        stylize(scene, cameras, textured_style(32, 48), config.config, plan=config.plan, on_stage=updates.append)
         proposals = [torch.from_numpy(updates[0].images[c.name]["proposal"]) for c in cameras]
         errors = []
         for i in range(len(cameras) - 1):

@@ -8,15 +8,18 @@ import torch
 from conftest import SHARED_DATA
 from test_pipeline import TINY, ring_cameras, sphere_scene
 
+from dresg_addon.method.backends import BACKENDS
 from dresg_addon.method.config import PRESETS, preset
-from dresg_addon.method.loop import medium_config, stylize
+from dresg_addon.method.loop import stylize
 from dresg_addon.method.medium import (
     INK_GUIDE_WEIGHT,
-    INK_PASSES,
     LUMINANCE,
     RAMP_BINS,
+    Ink,
     InkRamp,
+    Paint,
     line_width,
+    medium_for,
     read_medium,
     resolve_medium,
 )
@@ -59,31 +62,38 @@ def test_resolve_medium_reads_auto_takes_the_others_as_given_and_refuses_the_unk
         preset("standard", medium="pencil")
 
 
-def test_ink_sets_its_guides_and_light_and_paint_keeps_the_settings():
+def settled(config, style):
+    """(medium, config, plan, what was said) of a run of ``config`` on ``style``: the medium's settings."""
     said = []
-    ink = medium_config(PRESETS["standard"], line_drawing_image(), said.append)
-    assert ink.proposal.medium == "ink" and len(said) == 2 and "one stage" in said[1]
-    assert ink.proposal.guide_weight == INK_GUIDE_WEIGHT and ink.proposal.scene_light == 0.0
+    medium = medium_for(config, style, said.append)
+    config, plan = medium.settle(config, config.plan(), BACKENDS[config.proposal], said.append)
+    return medium, config, plan, said
+
+
+def test_ink_sets_its_guides_and_light_says_so_and_paint_keeps_the_settings():
+    standard = PRESETS["standard"]
+    medium, ink, plan, said = settled(standard, line_drawing_image())
+    assert isinstance(medium, Ink) and ink.medium == "ink" and medium.guide_weight == INK_GUIDE_WEIGHT
+    assert ink.scene_light == 0.0 and any("Scene Light 0.5 is not held" in line for line in said)
     # With the synth backend, one stage that runs its whole ladder, coarse to fine, at full strength.
-    assert (ink.schedule.stages, ink.schedule.updates_per_stage, ink.schedule.strength) == (1, INK_PASSES, "fixed-1")
-    assert len(scale_ladder(SynthSettings().max_levels, SynthSettings())) == INK_PASSES
-    sd15 = medium_config(PRESETS["standard"].with_(proposal="sd15", medium="ink"), line_drawing_image(), said.append)
-    assert sd15.schedule == PRESETS["standard"].schedule  # its stages are the scheduler's: left as they are
-    said.clear()
-    paint = medium_config(PRESETS["standard"], demo_style_image(), said.append)
-    assert paint == PRESETS["standard"].with_(medium="paint") and not said
-    for changes in ({"optimize_geometry": True}, {"color_fit": "adam"}):
-        with pytest.raises(ConfigError, match="ink medium paints the colours with the colour solve"):
-            medium_config(PRESETS["standard"].with_(medium="ink", **changes), line_drawing_image(), said.append)
-    assert medium_config(PRESETS["paper"], line_drawing_image(), said.append).proposal.medium == "paint"
-    assert {name: config.proposal.medium for name, config in PRESETS.items()} == {
+    passes = BACKENDS["synth"].ink_passes
+    assert (ink.stages, plan.updates_per_stage, plan.schedule) == (1, passes, "fixed-1")
+    assert any("one stage" in line for line in said)
+    assert len(scale_ladder(SynthSettings().max_levels, SynthSettings())) == passes
+    _, sd15, sd15_plan, _ = settled(standard.with_(proposal="sd15", medium="ink"), line_drawing_image())
+    assert sd15_plan == standard.plan() and sd15.stages == standard.stages  # the scheduler's stages: left as they are
+    medium, paint, plan, said = settled(standard, demo_style_image())
+    assert isinstance(medium, Paint) and paint == standard.with_(medium="paint") and plan == standard.plan()
+    assert not said and medium.best_views == standard.plan().best_views
+    with pytest.raises(ConfigError, match="ink medium paints the colours with the colour solve"):
+        settled(standard.with_(medium="ink", optimize_geometry=True), line_drawing_image())
+    assert settled(PRESETS["paper"], line_drawing_image())[1].medium == "paint"
+    assert {name: config.medium for name, config in PRESETS.items()} == {
         "standard": "auto",
         "preview": "auto",
         "paper": "paint",
         "cpu": "paint",
     }
-    # A run id leaves the medium out at paint, so checkpoints written before it came still resume.
-    assert "medium" not in paint.run_values() and ink.run_values()["medium"] == "ink"
 
 
 def test_a_drawings_line_width_is_measured_in_its_own_pixels():
@@ -123,7 +133,8 @@ def test_an_ink_run_says_so_and_puts_every_splat_on_the_drawings_ramp():
     said = []
     style = drawing(size=(24, 32))
     scene = sphere_scene(n=300)
-    result = stylize(scene, ring_cameras(3), style, TINY.with_(medium="auto", post_steps=0), messages=said.append)
+    ink = TINY.with_(medium="auto", post_steps=0)
+    result = stylize(scene, ring_cameras(3), style, ink.config, plan=ink.plan, messages=said.append)
     assert any("ink on paper" in line for line in said)
     assert any("wider than the drawing's lines" in line for line in said)  # 1.7 px splats, 1.5 px lines
     assert result.log[0]["medium"] == "ink" and [entry["stage"] for entry in result.log] == [1]  # one stage
@@ -131,5 +142,6 @@ def test_an_ink_run_says_so_and_puts_every_splat_on_the_drawings_ramp():
     seen = torch.from_numpy(np.abs(result.scene.sh_dc - scene.sh_dc).max(1) > 0)
     assert int(seen.sum()) > 100
     torch.testing.assert_close(InkRamp(style).apply(colors[seen]), colors[seen], atol=2e-3, rtol=0)
-    painted = stylize(scene, ring_cameras(3), style, TINY.with_(medium="paint", post_steps=0))
+    paint = TINY.with_(medium="paint", post_steps=0)
+    painted = stylize(scene, ring_cameras(3), style, paint.config, plan=paint.plan)
     assert painted.log[0]["medium"] == "paint"

@@ -11,6 +11,7 @@ import pytest
 from test_pipeline import TINY, ring_cameras, run, sphere_scene
 
 from dresg_addon.method.bookkeeping import Progress, ProgressLines, ProgressModel, format_seconds
+from dresg_addon.method.color_solve import FIT_SOLVE
 from dresg_addon.method.views import select_active_views
 
 # --- the model on a simulated clock ----------------------------------------------------------------------------
@@ -156,14 +157,14 @@ def test_a_stylization_reports_a_rising_fraction_one_loss_scale_and_estimates_ne
 
 @pytest.mark.parametrize("color_fit", ["solve", "adam"])
 def test_the_fit_counter_names_rounds_or_steps_as_the_settings_do(color_fit):
-    config = TINY.with_(stages=1, color_fit=color_fit, fit_steps=3, post_steps=2)
+    config = TINY.with_(stages=1, optimize_geometry=color_fit == "adam", fit_steps=3, post_steps=2)
     reports, _, _ = _timed_run(config)
     fits = [p for _, p in reports if p.phase == "fit" and p.step > 0]
     posts = [p for _, p in reports if p.phase == "post" and p.step > 0]
     if color_fit == "solve":
         assert all(p.message.startswith("colour solve round ") for p in fits + posts)
-        assert all(p.message.endswith(f"(at most {config.solve.rounds})") for p in fits + posts)
-    else:  # the panel's Fit Steps and Final Colour Steps
+        assert all(p.message.endswith(f"(at most {FIT_SOLVE.max_rounds})") for p in fits + posts)
+    else:  # geometry offsets: the plan's Adam steps
         assert [p.message for p in fits] == ["fit step 1/3", "fit step 2/3", "fit step 3/3"]
         assert [p.message for p in posts] == ["fit step 1/2", "fit step 2/2"]
         assert all(0 <= p.loss < 1 for p in fits + posts)
@@ -188,17 +189,24 @@ def test_the_result_counts_the_splats_it_stylized():
 def test_view_selection_reports_once_per_camera():
     cameras = ring_cameras(5)
     calls = []
-    select_active_views(sphere_scene(), cameras, TINY, progress=lambda done, total: calls.append((done, total)))
+    select_active_views(sphere_scene(), cameras, TINY.config, progress=lambda done, total: calls.append((done, total)))
     assert calls == [(k, 5) for k in range(1, 6)]
 
 
 def test_the_fits_prior_cost_counts_what_the_fit_runs():
     """Before a stage is timed the bar prices a fit by what it runs: a solve, a solve with each view solved alone
     (the best views), or Adam steps with a render per step."""
+    from dresg_addon.method.backends import BACKENDS
     from dresg_addon.method.bookkeeping import BEST_VIEWS_FIT_COST, PRIOR_COSTS, prior_costs
-    from dresg_addon.method.config import preset
+    from dresg_addon.method.config import preset_run
 
-    assert prior_costs(preset("cpu"))["fit"] == PRIOR_COSTS["fit"]
-    assert prior_costs(preset("standard"))["fit"] == pytest.approx(PRIOR_COSTS["fit"] * BEST_VIEWS_FIT_COST)
-    assert prior_costs(preset("standard", solve_best_views=0.0))["fit"] == PRIOR_COSTS["fit"]
-    assert prior_costs(preset("paper"))["fit"] == pytest.approx(0.8 * preset("paper").fit.fit_steps)
+    def fit_cost(name, **changes):
+        config, plan = preset_run(name, **changes)
+        return prior_costs(config, plan, BACKENDS[config.proposal])["fit"]
+
+    assert fit_cost("cpu") == PRIOR_COSTS["fit"]
+    assert fit_cost("standard") == pytest.approx(PRIOR_COSTS["fit"] * BEST_VIEWS_FIT_COST)
+    assert fit_cost("standard", best_views=0.0) == PRIOR_COSTS["fit"]
+    assert fit_cost("paper") == pytest.approx(0.8 * preset_run("paper")[1].fit_steps)
+    config, plan = preset_run("paper", proposal="sd15")
+    assert prior_costs(config, plan, BACKENDS["sd15"])["proposal"] == BACKENDS["sd15"].proposal_cost * 10

@@ -20,8 +20,8 @@ from diffusers import AutoencoderKL, UNet2DConditionModel  # noqa: E402
 from safetensors.torch import load_file, save_file  # noqa: E402
 from transformers import CLIPTextConfig, CLIPTextModel  # noqa: E402
 
+from dresg_addon.method.backends import BACKENDS  # noqa: E402
 from dresg_addon.method.config import StylizeConfig  # noqa: E402
-from dresg_addon.method.loop import _proposal_backend  # noqa: E402
 from dresg_addon.method.proposal import EnergyTerms, attention_energy, optimize_proposal  # noqa: E402
 from dresg_addon.method.proposal.sd15 import (  # noqa: E402
     DEFAULT_LAYERS,
@@ -254,12 +254,10 @@ def test_bad_shapes_and_timesteps_are_refused(backend):
 
 def test_a_run_builds_sd15_from_a_folder_with_its_settings_in_the_constructor(tiny):
     models, folder = tiny
-    config = StylizeConfig().with_(
-        proposal="sd15", model_path=str(folder), scene_weight=0.8, latent_lr=0.02, use_style_values=False
-    )
-    built = _proposal_backend(config, "cpu")
+    config = StylizeConfig().with_(proposal="sd15", model_path=str(folder), scene_weight=0.8)
+    built = BACKENDS["sd15"].make(config, config.plan().with_(use_style_values=False), device="cpu")
     assert built.name == "sd15" and built.dtype == torch.float32 and built.device == torch.device("cpu")
-    assert built.learning_rate == 0.02
+    assert built.learning_rate == 0.05  # the paper's latent lr
     assert built.terms == EnergyTerms(0.3 * 0.8, use_content_query=True, use_style_keys=True, use_style_values=False)
     ids = torch.tensor([[49406] + [49407] * 76])
     with torch.no_grad():
