@@ -39,6 +39,7 @@ class StylizeJob(Job):
         style_name: str = "",
         mask=None,
         dino_path: str = "",
+        plan=None,  # the method's schedule (None: the preset's); benchmarks and tests run variants with it
     ) -> None:
         super().__init__()
         self.object_name = obj.name
@@ -48,6 +49,7 @@ class StylizeJob(Job):
         self.n_stylized: int | None = None  # the splats it fitted (the selected ones an active view sees), once done
         self.config = config
         self.dino_path = dino_path  # local DINO weights for the Adam fit's feature term
+        self.plan = plan
         self.style_name = style_name
         self.loss: float | None = None  # the fit's RMSE over covered pixels
         self.eta: float | None = None  # seconds left; None while the run cannot estimate them yet
@@ -96,6 +98,7 @@ class StylizeJob(Job):
                 messages=lambda message: post("message", message),
                 mask=self.mask,
                 dino_path=self.dino_path,
+                plan=self.plan,
             )
         finally:
             threads.restore()  # torch gives the count last set to the next thread (the next job's)

@@ -337,7 +337,7 @@ def test_the_proposal_menu_its_notes_and_the_operators_warning_come_from_the_reg
     assert [(i.identifier, i.name, i.description) for i in prop.enum_items] == [
         (e.name, e.label, e.description) for e in entries
     ]
-    assert prop.default == addon.dresg_addon.method.config.PRESETS["standard"].proposal.backend == "synth"
+    assert prop.default == addon.dresg_addon.method.config.PRESETS["standard"].proposal == "synth"
 
     monkeypatch.setattr(addon.operators.dependencies, "torch_available", lambda: True)
     _splat_object(tmp_path)

@@ -151,9 +151,9 @@ def test_stroke_size_paint_scene_light_and_medium_reach_the_run(addon, tmp_path)
     assert "content_weight" not in settings_rna
     config = addon.dresg_addon.method.config
     settings = bpy.context.scene.dresg
-    assert settings.stroke_size == config.PRESETS[config.DEFAULT_PRESET].proposal.stroke_size
-    assert settings.scene_weight == pytest.approx(config.PRESETS[config.DEFAULT_PRESET].proposal.scene_weight)
-    assert settings.scene_light == pytest.approx(config.PRESETS[config.DEFAULT_PRESET].proposal.scene_light)
+    assert settings.stroke_size == config.PRESETS[config.DEFAULT_PRESET].stroke_size
+    assert settings.scene_weight == pytest.approx(config.PRESETS[config.DEFAULT_PRESET].scene_weight)
+    assert settings.scene_light == pytest.approx(config.PRESETS[config.DEFAULT_PRESET].scene_light)
     _import(tmp_path, _scene())
     from dresg_addon.util.imageio import write_image
 
@@ -163,31 +163,33 @@ def test_stroke_size_paint_scene_light_and_medium_reach_the_run(addon, tmp_path)
     settings.stroke_size, settings.scene_weight, settings.scene_light = 2.5, 0.8, 0.0
     medium = settings_rna["medium"]
     assert medium.name == "Medium" and [item.identifier for item in medium.enum_items] == ["auto", "paint", "ink"]
-    assert settings.medium == config.PRESETS[config.DEFAULT_PRESET].proposal.medium == "auto"
+    assert settings.medium == config.PRESETS[config.DEFAULT_PRESET].medium == "auto"
     settings.medium = "ink"
     run, _ = addon.operators.stylize.prepare_job(bpy.context)
-    proposal = run.config.proposal
+    proposal = run.config
     assert (proposal.stroke_size, proposal.scene_weight, proposal.scene_light) == pytest.approx((2.5, 0.8, 0.0))
     assert proposal.medium == "ink"
     settings.preset = "preview"  # a preset brings its own values back
-    assert settings.scene_weight == pytest.approx(config.PRESETS["preview"].proposal.scene_weight)
-    assert settings.stroke_size == config.PRESETS["preview"].proposal.stroke_size
-    assert settings.scene_light == pytest.approx(config.PRESETS["preview"].proposal.scene_light)
+    assert settings.scene_weight == pytest.approx(config.PRESETS["preview"].scene_weight)
+    assert settings.stroke_size == config.PRESETS["preview"].stroke_size
+    assert settings.scene_light == pytest.approx(config.PRESETS["preview"].scene_light)
     assert settings.medium == "auto"
     panel = [args[1] for name, args, kw in _drawn(addon.ui.panels.DRESG_PT_style) if name == "prop"]
     assert panel.index("stroke_size") < panel.index("scene_weight") < panel.index("scene_light") < panel.index("medium")
     assert panel.index("medium") < panel.index("preset")
 
+    panels = addon.ui.panels
+
     def active(prop: str) -> bool:  # the row's last `active` before the property is drawn in it
-        calls = _drawn(addon.ui.panels.DRESG_PT_style)
+        calls = _drawn(panels.DRESG_PT_style) + _drawn(panels.DRESG_PT_style_advanced)
         at = next(i for i, (name, args, _) in enumerate(calls) if name == "prop" and args[1] == prop)
         return calls[at - 1] != ("=active", (False,), {})
 
-    assert all(active(prop) for prop in ("stages", "schedule", "optimize_geometry", "scene_light"))
+    assert all(active(prop) for prop in ("stages", "optimize_geometry", "scene_light"))
     settings.medium = "ink"  # drawn in one stage of its own, colours only, with no scene light
-    assert not any(active(prop) for prop in ("stages", "schedule", "optimize_geometry", "scene_light"))
+    assert not any(active(prop) for prop in ("stages", "optimize_geometry", "scene_light"))
     settings.proposal = "sd15"  # its stages are the scheduler's
-    assert active("stages") and active("schedule") and not active("optimize_geometry")
+    assert active("stages") and not active("optimize_geometry")
 
 
 def _quick_selection_scene(tmp_path):
@@ -195,7 +197,7 @@ def _quick_selection_scene(tmp_path):
     obj = _import(tmp_path, _scene(n=300, spread=0.5))
     bpy.ops.dresg.add_orbit_cameras(count=3)
     settings = bpy.context.scene.dresg
-    for name, value in {"stages": 1, "post_steps": 2, "proposal_width": 32, "proposal_height": 24}.items():
+    for name, value in {"stages": 1, "proposal_width": 32, "proposal_height": 24}.items():
         setattr(settings, name, value)
     settings.preset, settings.max_views = "preview", 3
     return obj, settings

@@ -30,14 +30,14 @@ def test_the_poll_loop_shows_a_rising_bar_and_estimates_near_the_runs_time(addon
     ops = addon.operators
     obj = _import(tmp_path, _scene(n=3000, spread=0.5))
     splats = ops.splat_object.scene_from_object(obj)
-    config = addon.dresg_addon.method.config.preset(
+    config, plan = addon.dresg_addon.method.config.preset_run(
         "preview", stages=4, early_stop=0.0, proposal_width=32, proposal_height=24, max_views=3
     )
     from stylize_gaussians.dresg_addon.scene.orbit import orbit_cameras
 
     cameras = orbit_cameras(splats, 4, width=96, height=64)
     style = np.random.default_rng(1).uniform(size=(24, 32, 3)).astype(np.float32)
-    run = ops.job.StylizeJob(obj, splats, cameras, style, config)
+    run = ops.job.StylizeJob(obj, splats, cameras, style, config, plan=plan)
     seen = []  # (seconds since the start, fraction, eta, text) after each poll
     started = time.monotonic()
     run.start()
@@ -70,7 +70,7 @@ def test_the_report_after_a_selection_run_counts_the_selection(addon, tmp_path, 
     obj = _import(tmp_path, _scene(n=300, spread=0.5))
     bpy.ops.dresg.add_orbit_cameras(count=3)
     settings = bpy.context.scene.dresg
-    for name, value in {"stages": 1, "post_steps": 0, "proposal_width": 32, "proposal_height": 24}.items():
+    for name, value in {"stages": 1, "proposal_width": 32, "proposal_height": 24}.items():
         setattr(settings, name, value)
     settings.preset, settings.max_views, settings.style_path = "preview", 3, _style(tmp_path)
     left = np.array([v.co.x for v in obj.data.vertices]) < 0

@@ -18,10 +18,8 @@ bpy = pytest.importorskip("bpy")
 pytest.importorskip("torch")
 pytestmark = pytest.mark.blender
 REPO = Path(__file__).resolve().parents[1]
-SETTINGS = {  # a quick run: 2 stages of 3 fit steps on 64x48 renders of 2 views
+SETTINGS = {  # a quick run: 2 stages on 64x48 renders of 2 views
     "stages": 2,
-    "fit_steps": 3,
-    "post_steps": 2,
     "proposal_width": 64,
     "proposal_height": 48,
     "max_views": 2,
@@ -165,7 +163,10 @@ def test_threaded_run_cancels_and_restores(luigi):
     np.testing.assert_allclose(attribute(obj, sm.COLOR), sm.display_colors(sh_dc, opacity), atol=1e-6)
     moved = np.array([v.co for v in obj.data.vertices])
     extent = float(re.search(r"scene extent ([0-9.e+-]+):", "\n".join(run.messages)).group(1))
-    assert np.abs(moved - original.means).max() <= run.config.adam.mean_bound * extent * (1 + 1e-5) + 1e-6
+    assert (
+        np.abs(moved - original.means).max()
+        <= addon.dresg_addon.method.optim.GeometryBounds().means * extent * (1 + 1e-5) + 1e-6
+    )
     np.testing.assert_array_equal(attribute(obj, sm.MEANS_ORIGINAL), original.means)
     np.testing.assert_array_equal(opacity, sm.sigmoid(original.opacity_logits))
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dresg_addon import cli
-from dresg_addon.method.config import PRESETS, StylizeConfig
+from dresg_addon.method.config import PLANS, PRESETS
 from dresg_addon.scene.camera import Camera, look_at
 from dresg_addon.scene.camera_io import write_cameras_json
 from dresg_addon.scene.gaussians import SH_C0, GaussianScene
@@ -194,8 +194,6 @@ def test_select_views_prints_a_table_and_json(files, capsys):
         ({"--proposal": "sd15"}, "needs a local model path"),
         ({"--proposal": "sd15", "--model": "x", "--proposal-size": "36x28"}, "multiple of 8"),
         ({"--background": "2,0,0"}, "--background"),
-        ({"--early-stop": "1.5"}, "early_stop must be in [0, 1)"),
-        ({"--solve-anchor": "-1"}, "solve_anchor must be >= 0"),
         ({"--strength": "2"}, "strength must be in [0, 1]"),
         ({"--stroke-size": "0.1"}, "stroke_size must be in [0.25, 8]"),
         ({"--paint-scene": "-0.5"}, "scene_weight must be in [0, 1]"),
@@ -232,17 +230,8 @@ def test_demo_command_writes_its_assets_and_before_after_images(tmp_path, monkey
     monkeypatch.setattr(
         demo, "demo_cameras", lambda scene, n, **kw: real_cameras(scene, n=n, width=64, height=48, **kw)
     )
-    tiny = StylizeConfig().with_(
-        stages=1,
-        updates_per_stage=2,
-        fit_steps=2,
-        post_steps=2,
-        proposal_width=32,
-        proposal_height=24,
-        max_views=2,
-        optimize_geometry=False,
-    )
-    monkeypatch.setitem(PRESETS, "preview", tiny)
+    monkeypatch.setitem(PRESETS, "preview", PRESETS["preview"].with_(stages=1, proposal_width=32, proposal_height=24))
+    monkeypatch.setitem(PLANS, "preview", PLANS["preview"].with_(updates_per_stage=2))
     out = tmp_path / "demo"
     assert cli.main(["demo", "--out", str(out), "--views", "2"]) == 0
     assert "before_after.png" in capsys.readouterr().out

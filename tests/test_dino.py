@@ -23,7 +23,7 @@ from transformers import (  # noqa: E402
     ViTModel,
 )
 
-from dresg_addon.method.config import StylizeConfig  # noqa: E402
+from dresg_addon.method.config import preset_run  # noqa: E402
 from dresg_addon.method.dino import FEATURE_SIZE, DinoFeatures  # noqa: E402
 from dresg_addon.method.loop import stylize  # noqa: E402
 from dresg_addon.scene.camera import Camera, look_at  # noqa: E402
@@ -129,21 +129,15 @@ def test_stylize_uses_dino_features_when_given_local_weights(dinov2):
         for i, a in enumerate((0.0, 2.0))
     ]
     style = np.broadcast_to(np.float32([0.1, 0.2, 0.9]), (24, 32, 3))
-    config = StylizeConfig().with_(
-        stages=1,
-        updates_per_stage=2,
-        fit_steps=2,
-        post_steps=0,
-        proposal_width=32,
-        proposal_height=24,
-        optimize_geometry=False,
-        color_fit="adam",  # the feature term shapes gradient fits; a solved colour fit has none
+    # Geometry offsets: the feature term shapes the Adam fit; a solved colour fit has none.
+    config, plan = preset_run(
+        "paper", stages=1, updates_per_stage=2, fit_steps=2, post_steps=0, proposal_width=32, proposal_height=24
     )
     messages = []
-    with_dino = stylize(scene, cameras, style, config.with_(dino_path=str(dinov2)), messages=messages.append)
+    with_dino = stylize(scene, cameras, style, config, plan=plan, dino_path=str(dinov2), messages=messages.append)
     assert any(m.startswith("feature loss: DINO") for m in messages), messages
     assert np.isfinite(with_dino.scene.sh_dc).all()
     messages = []
-    with_patches = stylize(scene, cameras, style, config, messages=messages.append)
+    with_patches = stylize(scene, cameras, style, config, plan=plan, messages=messages.append)
     assert any("weight-free patch features" in m for m in messages), messages
     assert not np.array_equal(with_dino.scene.sh_dc, with_patches.scene.sh_dc)
