@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from dresg_addon.blender import splat_mesh as sm
+from dresg_addon.method.optim import GeometryBounds
 from dresg_addon.scene.io import read_scene
 from dresg_addon.util.imageio import read_image
 
@@ -165,7 +166,7 @@ def test_threaded_run_cancels_and_restores(luigi):
     extent = float(re.search(r"scene extent ([0-9.e+-]+):", "\n".join(run.messages)).group(1))
     assert (
         np.abs(moved - original.means).max()
-        <= addon.dresg_addon.method.optim.GeometryBounds().means * extent * (1 + 1e-5) + 1e-6
+        <= GeometryBounds().means * extent * (1 + 1e-5) + 1e-6
     )
     np.testing.assert_array_equal(attribute(obj, sm.MEANS_ORIGINAL), original.means)
     np.testing.assert_array_equal(opacity, sm.sigmoid(original.opacity_logits))
