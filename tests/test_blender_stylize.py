@@ -164,10 +164,7 @@ def test_threaded_run_cancels_and_restores(luigi):
     np.testing.assert_allclose(attribute(obj, sm.COLOR), sm.display_colors(sh_dc, opacity), atol=1e-6)
     moved = np.array([v.co for v in obj.data.vertices])
     extent = float(re.search(r"scene extent ([0-9.e+-]+):", "\n".join(run.messages)).group(1))
-    assert (
-        np.abs(moved - original.means).max()
-        <= GeometryBounds().means * extent * (1 + 1e-5) + 1e-6
-    )
+    assert np.abs(moved - original.means).max() <= GeometryBounds().means * extent * (1 + 1e-5) + 1e-6
     np.testing.assert_array_equal(attribute(obj, sm.MEANS_ORIGINAL), original.means)
     np.testing.assert_array_equal(opacity, sm.sigmoid(original.opacity_logits))
 
