@@ -17,8 +17,8 @@ import math
 from dataclasses import asdict, dataclass, fields, replace
 
 from ..util.errors import ConfigError
-from .backends import BACKENDS
-from .medium import MEDIA
+from .backends import BACKENDS, DEFAULT_BACKEND
+from .medium import DEFAULT_MEDIUM, MEDIA, PAINT
 from .schedule import DDIM_STEPS, RESIDUAL_SCHEDULES
 
 SH_REST_MODES = ("keep", "zero")
@@ -96,8 +96,8 @@ class StylizeConfig:
     # The share of Paint <-> Scene's pull given to the scene's light above the stroke scale (backends that hold light);
     # a dark capture holds less of it (docs/decisions/003-scene-light.md).
     scene_light: float = 0.5
-    medium: str = "auto"  # what the painting is: paint, ink, or auto (read from its colours; medium.py)
-    proposal: str = "synth"  # the proposal backend (backends.BACKENDS)
+    medium: str = DEFAULT_MEDIUM  # what the painting is: paint, ink, or auto (read from its colours; medium.py)
+    proposal: str = DEFAULT_BACKEND  # the proposal backend (backends.BACKENDS)
     model_path: str = ""  # a backend's local weights (sd15: a Stable Diffusion 1.5 folder or .safetensors)
     seed: int = 0
     optimize_geometry: bool = False  # bounded mean, scale and rotation offsets (Eq. 16's Adam fit) besides colours
@@ -190,7 +190,7 @@ PLANS: dict[str, Plan] = {
     "paper": PAPER_PLAN,
     "cpu": PAPER_PLAN,
 }
-_PAPER_LOOK = {"stages": 20, "max_views": 0, "stroke_size": 1.0, "scene_light": 0.0, "medium": "paint"}
+_PAPER_LOOK = {"stages": 20, "max_views": 0, "stroke_size": 1.0, "scene_light": 0.0, "medium": PAINT}
 PRESETS: dict[str, StylizeConfig] = {
     "standard": StylizeConfig(),
     "preview": StylizeConfig(preset="preview", stages=6, max_views=8),
