@@ -39,7 +39,7 @@ def test_quality_evaluate_reports_every_measured_column(case):
     result = evaluate_views(recoloured, base, style)  # what quality.run_case measures
     measured = result.mean
     assert len(result.renders_2x) == len(cameras)
-    fit_keys = {"min_closed", "fit_ratio", "disagreement"}  # from the stylize log, not from the views
+    fit_keys = {"min_closed"}  # from the stylize log, not from the views
     for key, _, _ in quality.COLUMNS:
         if key not in fit_keys:
             assert key in measured and measured[key] is not None and math.isfinite(measured[key]), key
@@ -77,30 +77,15 @@ def test_quality_verdicts_check_texture_kept_over_the_pairs_and_shapes_per_scene
     assert line.count(": met") == 2
 
 
-def test_the_fit_summary_takes_the_last_stage_s_view_disagreement_and_leaves_the_post_stage_out():
+def test_the_fit_summary_takes_the_smallest_share_of_a_gap_closed():
     log = [
-        {
-            "stage": 1,
-            "target_gap": 0.2,
-            "gap_closed": 0.9,
-            "fit_residual": 0.1,
-            "optimum_residual": 0.1,
-            "view_disagreement": 1.8,
-        },
-        {
-            "stage": 2,
-            "target_gap": 0.1,
-            "gap_closed": 0.8,
-            "fit_residual": 0.1,
-            "optimum_residual": 0.05,
-            "view_disagreement": 1.4,
-        },
-        {"stage": "post", "target_gap": 0.1, "gap_closed": 0.5, "fit_residual": 0.1, "view_disagreement": 9.0},
+        {"stage": 1, "target_gap": 0.2, "gap_closed": 0.9, "fit_residual": 0.1},
+        {"stage": 2, "target_gap": 0.1, "gap_closed": 0.8, "fit_residual": 0.1},
+        {"stage": "post", "target_gap": 0.1, "gap_closed": 0.5, "fit_residual": 0.1},
     ]
     summary = quality.fit_summary(log)
-    assert summary["disagreement"] == 1.4 and summary["disagreement_per_stage"] == [1.8, 1.4]
-    assert summary["min_closed"] == 0.5 and summary["fit_ratio"] == 2.0
-    assert quality.fit_summary([])["disagreement"] is None
+    assert summary["min_closed"] == 0.5 and summary["closed_per_stage"] == [0.9, 0.8, 0.5]
+    assert quality.fit_summary([])["min_closed"] is None
 
 
 def test_rows_with_settings_split_on_semicolons_and_runs_merge_pair_by_pair(tmp_path, capsys):

@@ -64,8 +64,8 @@ def test_every_setting_and_operator_speaks_to_an_artist(addon):
     for name, text in texts:
         assert text.strip(), f"{name} has no tooltip or label"
         assert not any(word in text for word in JARGON), f"{name}: {text!r}"
-    schedule = settings.properties["schedule"]
-    assert all(item.name != item.identifier for item in schedule.enum_items)  # labels, not raw names
+    for enum in ("medium", "proposal", "sh_rest"):
+        assert all(item.name != item.identifier for item in settings.properties[enum].enum_items)  # labels
     assert {item.name for item in settings.properties["preset"].enum_items} >= {"Standard", "Preview"}
     assert addon.ui.panels.CATEGORY == "Stylize Gaussians"
 

@@ -806,8 +806,9 @@ def test_a_guide_holds_the_synthesis_to_it_where_it_has_weight():
 
 @pytest.mark.parametrize("stroke_size, period", [(1.0, 8.0), (2.0, 16.0)])
 def test_stroke_size_scales_the_marks(stroke_size, period):
+    from dresg_addon.method.backends import synth_stroke_sigma
     from dresg_addon.method.config import StylizeConfig
-    from dresg_addon.method.loop import _resize, stroke_sigma, style_size
+    from dresg_addon.method.loop import _resize, style_size
 
     height, width = 96, 128
     content = 0.5 + 0.02 * torch.rand(3, height, width, generator=torch.Generator().manual_seed(1))
@@ -816,7 +817,7 @@ def test_stroke_size_scales_the_marks(stroke_size, period):
     painting = torch.stack([0.2 + 0.6 * on, 0.3 + 0.4 * on, 0.5 - 0.2 * on])
     config = StylizeConfig().with_(proposal_width=width, proposal_height=height, stroke_size=stroke_size)
     style = _resize(painting, *style_size(config))  # what the loop hands the backend
-    backend = SynthBackend(content_weight=1.0, content_sigma=stroke_sigma(config))
+    backend = SynthBackend(content_weight=1.0, content_sigma=synth_stroke_sigma(config.stroke_size))
     out, _ = backend.propose(content, (951, 751, 501, 336, 171, 1), style, content)
     rows = out[0, 8:-8]
     power = torch.fft.rfft(rows - rows.mean(1, keepdim=True), dim=1).abs().square().mean(0)

@@ -25,6 +25,8 @@ import torch
 
 from ..method.config import PRESETS, StylizeConfig
 from ..method.optim import GeometryBounds
+from ..method.pcgrad import PCGRAD_EPS
+from ..raster import RasterSettings
 from ..scene.camera import Camera, look_at
 from ..scene.gaussians import SH_C0, GaussianScene
 
@@ -229,7 +231,7 @@ def case_pcgrad_degenerate_gradients() -> CaseResult:
         "conflicting x 1e-30": (conflict * 1e-30).float(),
         "mixed 1 and 1e-30": torch.stack([g[0], -g[0] * 1e-30]).float(),
     }
-    eps = StylizeConfig().adam.pcgrad_eps  # what the pipeline passes
+    eps = PCGRAD_EPS  # what the pipeline passes
     observed, ok, fused = {}, True, {}
     for name, grads in cases.items():
         out = pcgrad_fuse(grads, eps)
@@ -303,7 +305,7 @@ def case_adam_with_huge_gradients() -> CaseResult:
 def case_geometry_offsets_at_bounds() -> CaseResult:
     """Offsets projected from 10x their bounds, a quaternion offset to exactly zero, render + backward."""
     from ..method.optim import GeometryBounds, project_geometry_offsets_
-    from ..raster import RasterSettings, render
+    from ..raster import render
 
     bounds = GeometryBounds()
     scene = tiny_scene(16)
@@ -367,7 +369,7 @@ def scaled_scene(scene: GaussianScene, cameras: list[Camera], factor: float):
 def _case_scaled(factor: float) -> CaseResult:
     from ..method.loop import stylize
     from ..method.views import visibility_matrix
-    from ..raster import RasterSettings, render_scene
+    from ..raster import render_scene
 
     scene, cameras = tiny_scene(), tiny_cameras()
     big, big_cameras = scaled_scene(scene, cameras, factor)
@@ -429,7 +431,7 @@ def case_flat_style_image() -> CaseResult:
     """Flat style images (black, white, a mid colour) through the proposal, colour transfer and stylize."""
     from ..method.color_transfer import covariance_color_transform
     from ..method.proposal.synth import SynthBackend
-    from ..raster import RasterSettings, render_scene
+    from ..raster import render_scene
 
     scene, cameras = tiny_scene(), tiny_cameras()
     out = render_scene(scene, cameras[0], RasterSettings())
@@ -466,7 +468,7 @@ def case_flat_style_image() -> CaseResult:
 def case_single_gaussian_covers_view() -> CaseResult:
     """One huge opaque Gaussian fills the whole view (and one just past the near plane)."""
     from ..method.views import select_active_views, visibility_matrix
-    from ..raster import RasterSettings, render_scene
+    from ..raster import render_scene
 
     scene = GaussianScene(
         means=np.array([[0.0, 0.0, 2.0]], np.float32),
@@ -481,7 +483,7 @@ def case_single_gaussian_covers_view() -> CaseResult:
     color_error = _max_abs(out.rgb - torch.from_numpy(expected.astype(np.float32)))
     near = replace(scene, means=np.array([[0.0, 0.0, 0.0101]], np.float32), log_scales=np.zeros((1, 3), np.float32))
     near_out = render_scene(near, cameras[0], RasterSettings())
-    visibility = visibility_matrix(scene, cameras, StylizeConfig().scene.raster()).to_dense()
+    visibility = visibility_matrix(scene, cameras, RasterSettings()).to_dense()
     selection = select_active_views(scene, cameras, StylizeConfig())
     summary, finite, _ = _stylize_summary(scene, cameras, _style(), tiny_config(), "stylize: ")
     ok = _finite(out.rgb, out.alpha, out.visibility, near_out.rgb, near_out.alpha, visibility) and finite
