@@ -215,7 +215,6 @@ def scene_from_object(obj) -> GaussianScene:
     )
 
 
-@in_object_mode
 def run_selection(obj, mode: str) -> str:
     """The Stylize setting as a run reads it (ALL, SELECTED or GROUP): AUTO is the Edit Mode selection when the
     object is in Edit Mode with splats selected, as Blender's own tools act on it; otherwise every splat. Read it
@@ -225,6 +224,7 @@ def run_selection(obj, mode: str) -> str:
     return "SELECTED" if obj.mode == "EDIT" and obj.data.total_vert_sel else "ALL"
 
 
+@in_object_mode
 def selection_mask(obj, mode: str, group: str = "") -> np.ndarray | None:
     """[N] bool of the splats a run should change: None for ALL; the Edit Mode selection (SELECTED); a vertex
     group's members or a boolean point attribute (GROUP). SceneFormatError names what is missing or empty."""
