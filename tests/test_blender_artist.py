@@ -135,10 +135,10 @@ def test_max_views_applies_to_ticked_cameras(addon, tmp_path):
     settings.max_views = 2
     run, note = prepare_job(bpy.context)
     assert run.views is None and len(run.cameras) == 5  # the engine picks 2 of the 5 by coverage
-    assert "5 cameras ticked" in note and "Max Views is 2" in note
+    assert note == "Views: 5 ticked cameras: the 2 that see the most are used"
     settings.max_views = 0
     run, note = prepare_job(bpy.context)
-    assert run.views == [0, 1, 2, 3, 4] and note == ""
+    assert run.views == [0, 1, 2, 3, 4] and note == "Views: 5 ticked cameras: only they will be used"
 
 
 def test_stroke_size_paint_scene_light_and_medium_reach_the_run(addon, tmp_path):
@@ -176,7 +176,7 @@ def test_stroke_size_paint_scene_light_and_medium_reach_the_run(addon, tmp_path)
     assert settings.medium == "auto"
     panel = [args[1] for name, args, kw in _drawn(addon.ui.panels.DRESG_PT_style) if name == "prop"]
     assert panel.index("stroke_size") < panel.index("scene_weight") < panel.index("scene_light") < panel.index("medium")
-    assert panel.index("medium") < panel.index("preset")
+    assert panel.index("preset") < panel.index("stroke_size")  # the preset above the controls it sets
 
     panels = addon.ui.panels
 

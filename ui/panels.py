@@ -110,7 +110,8 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
             row.operator("dresg.stylize", text=stylize_label(obj, settings), icon="BRUSH_DATA")
         if mine and current.state in (JobState.DONE, JobState.CANCELLED):  # the last run's notes, until the next
             notes = layout.box()
-            for line in [current.summary(), *current.notes()]:
+            summary = [current.summary()] if current.n_changed is not None else []  # once colours were written
+            for line in [*summary, *current.notes()]:
                 _wrapped(notes, line[0].upper() + line[1:], icon="INFO")
         if mine and current.state is JobState.ERROR:
             box = layout.box()
