@@ -8,16 +8,20 @@ mode (``blender -b``, the bpy module) timers do not fire while a script runs, so
 :meth:`~.tasks.Job.run_blocking` runs the engine on the calling thread and applies results at once.
 """
 
+import contextlib
 import json
 import math
 
 import bpy
+import numpy as np
 
-from ..dresg_addon.method.bookkeeping import ProgressLines, format_seconds
+from ..dresg_addon.method.bookkeeping import Note, ProgressLines, format_seconds
+from ..dresg_addon.scene.gaussians import SH_C0
 from ..dresg_addon.util.errors import DresgError
 from ..dresg_addon.util.threads import ThreadAdapter
 from .splat_object import is_splat_object, object_mode, write_colors, write_geometry
 from .tasks import Job, JobState
+from .views import record_seen
 
 PRINT_INTERVAL = 2.0  # seconds between progress lines in background mode
 
@@ -40,13 +44,17 @@ class StylizeJob(Job):
         mask=None,
         dino_path: str = "",
         plan=None,  # the method's schedule (None: the preset's); benchmarks and tests run variants with it
+        views_key: str = "",  # the scene cameras' names (views.ViewPlan.key); empty for an orbit ring
     ) -> None:
         super().__init__()
         self.object_name = obj.name
         self.object_uid = obj.session_uid
         self.n_splats = len(scene)
         self.n_selected = len(scene) if mask is None else int(mask.sum())  # the splats the run was asked to stylize
-        self.n_stylized: int | None = None  # the splats it fitted (the selected ones an active view sees), once done
+        self.n_fitted: int | None = None  # the splats it fitted (the selected ones an active view sees), once done
+        self.n_changed: int | None = None  # the splats whose colours it changed (changed_count), once it ended
+        self.views_key = views_key
+        self._before = scene.sh_dc  # the colours the run starts from (the engine never writes its input)
         self.config = config
         self.dino_path = dino_path  # local DINO weights for the Adam fit's feature term
         self.plan = plan
@@ -142,6 +150,7 @@ class StylizeJob(Job):
 
     def _apply_stage(self, obj, update) -> None:
         write_colors(obj, update.sh_dc)
+        self.n_changed = changed_count(self._before, update.sh_dc)
         if update.means is not None:
             write_geometry(obj, update.means, update.log_scales, update.quats)
         if update.images:
@@ -159,34 +168,58 @@ class StylizeJob(Job):
         if bpy.app.background and line is not None and not self.cancel_requested:
             print(f"[stylize] {line}", flush=True)
 
+    def notes(self) -> list[str]:
+        """The run's notes for the artist (the engine's :class:`~dresg_addon.method.bookkeeping.Note` lines: the
+        medium it read, the views it used, Stroke Size and Scene Light advice, the early stop), oldest first."""
+        return [message for message in self.messages if isinstance(message, Note)]
+
     def summary(self) -> str:
-        """What the run did, for the operator's report: the splats it stylized (of the selection) and its time."""
+        """What the run did, for the operator's report: the splats whose colours it changed (of the selection),
+        those it left and why, and its time."""
         took = format_seconds(self.seconds)
-        stylized = self.n_selected if self.n_stylized is None else self.n_stylized
+        changed = self.n_changed or 0
         what = "selected splats" if self.mask is not None else "splats"
-        if stylized >= self.n_selected:
-            return f"Stylized {stylized:,} {what} in {took}"
-        unseen = self.n_selected - stylized
-        return (
-            f"Stylized {stylized:,} of the {self.n_selected:,} {what} in {took} "
-            f"({unseen:,} that no active view sees kept their colours)"
-        )
+        if changed >= self.n_selected:
+            return f"Stylized {changed:,} {what} in {took}"
+        kept = self.n_selected - changed
+        line = f"Stylized {changed:,} of the {self.n_selected:,} {what} in {took}; {kept:,} kept their colours"
+        unseen = 0 if self.n_fitted is None else self.n_selected - self.n_fitted
+        return line + (f" ({unseen:,} that no active view sees)" if unseen > 0 else "")
 
     def _on_end(self) -> None:
         if self.state is JobState.CANCELLED:
             self.text = f"Cancelled after {self.stages_applied} stage(s)"
         elif self.state is JobState.DONE:
             self.text = f"Done in {format_seconds(self.seconds)}"
+        if self.state is not JobState.DONE and self.stages_applied:
+            # Its stages' colours stay: say so on the object, and in the saved .blend.
+            how = "cancelled" if self.state is JobState.CANCELLED else "failed"
+            with contextlib.suppress(DresgError):  # the object is gone: nothing to write on
+                self._settle(self._object(), {f"{how}_after_stage": self.stages_applied})
         if bpy.app.background:
             print(f"[stylize] {self.error or self.text}", flush=True)
 
     def _apply_result(self, obj, result) -> None:
         scene = result.scene
-        self.n_stylized = result.stylized
+        self.n_fitted = result.stylized
+        self.n_changed = changed_count(self._before, scene.sh_dc)
         write_colors(obj, scene.sh_dc)
         if self.config.optimize_geometry:
             write_geometry(obj, scene.means, scene.log_scales, scene.quats)
+        if self.views_key:  # what the scene's cameras saw: the Views panel offers the orbit when it is too little
+            record_seen(obj, self.views_key, self.n_fitted / max(self.n_selected, 1))
+        self._settle(obj, {"seconds": round(result.seconds, 1)})
+
+    def _settle(self, obj, extra: dict) -> None:
+        """Mark ``obj`` as stylized by this run (its settings, kept in the .blend; the panel's "Stylized")."""
         obj["dresg_sh_rest"] = self.config.sh_rest
-        obj["dresg_stylize_settings"] = json.dumps(
-            {"style": self.style_name, "seconds": round(result.seconds, 1), **self.config.to_dict()}
-        )
+        obj["dresg_stylize_settings"] = json.dumps({"style": self.style_name, **extra, **self.config.to_dict()})
+
+
+CHANGED = 0.5 / 255.0  # a colour moved by half an 8-bit level: it shows (an 8-bit export may round it over)
+
+
+def changed_count(before, after) -> int:
+    """How many splats' colours differ between two [N, 3] SH DC arrays by :data:`CHANGED` on a channel."""
+    moved = np.abs(np.asarray(after, np.float64) - np.asarray(before, np.float64)).max(axis=1) * SH_C0
+    return int(np.count_nonzero(moved >= CHANGED))

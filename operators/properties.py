@@ -4,6 +4,8 @@ The settings mirror :class:`dresg_addon.method.config.StylizeConfig`; choosing a
 into the fields, and :meth:`DRESG_PG_settings.config` turns the fields back into a config.
 """
 
+import math
+
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
@@ -39,7 +41,8 @@ def _default(name: str):
     return getattr(PRESETS[DEFAULT_PRESET], name)
 
 
-def _apply_preset(settings, _context) -> None:
+def apply_preset(settings, _context=None) -> None:
+    """Set every control the preset names to its value, as Blender's preset menus do (its update, and Reset)."""
     values = PRESETS[settings.preset]
     for name in CONFIG_FIELDS:
         setattr(settings, name, getattr(values, name))
@@ -72,10 +75,12 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
     )
     preset: EnumProperty(
         name="Preset",
-        description="Fill the settings below for a speed and quality; you can change them afterwards",
+        description="Set every control below it to the preset's values (Stroke Size, Paint <-> Scene, Scene Light, "
+        "Medium, Stages, Max Views, View Size...) for a speed and quality; the panel marks the ones changed "
+        "afterwards",
         items=[(name, preset_label(name), preset_description(name)) for name in PRESETS],
         default=DEFAULT_PRESET,
-        update=_apply_preset,
+        update=apply_preset,
     )
     proposal: EnumProperty(
         name="Proposal",
@@ -92,13 +97,13 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         default=_default("stages"),
     )
     proposal_width: IntProperty(
-        name="Width",
+        name="View Size X",
         description="Size the views are painted at: larger shows finer strokes, costs more time",
         min=8,
         default=_default("proposal_width"),
     )
     proposal_height: IntProperty(
-        name="Height",
+        name="View Size Y",
         description="Size the views are painted at: larger shows finer strokes, costs more time",
         min=8,
         default=_default("proposal_height"),
@@ -162,7 +167,7 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         name="Fit Resolution",
         description="Image size of the cameras while stylizing",
         items=(
-            ("PRESET", "Preset's", "The scene's aspect within the painting size above (e.g. 448x252): fast on a CPU"),
+            ("PRESET", "View Size", "The scene's aspect within View Size X and Y (e.g. 448x252): fast on a CPU"),
             ("SCENE", "Scene's Render", "Output Properties > Resolution: finer, slower (4x the pixels costs ~4x)"),
         ),
         default="PRESET",
@@ -195,19 +200,57 @@ class DRESG_PG_settings(bpy.types.PropertyGroup):
         default=50.0,
     )
     camera_index: IntProperty(name="Active Camera Row", description="The highlighted row of the Views list")
+    # Numbered: files saved before Auto keep their choice.
     selection: EnumProperty(
         name="Stylize",
         description="Which splats a run changes (the others keep their colours, from the import or earlier runs)",
         items=(
-            ("ALL", "All Splats", "Every splat the views see"),
-            ("SELECTED", "Selected Splats", "The splats (vertices) selected in Edit Mode"),
-            ("GROUP", "Vertex Group", "The splats in a vertex group, or where a boolean point attribute is true"),
+            (
+                "AUTO",
+                "Selection in Edit Mode",
+                "As Blender's own tools: in Edit Mode the selected splats, otherwise all of them",
+                "NONE",
+                3,
+            ),
+            ("ALL", "All Splats", "Every splat the views see, in Edit Mode too", "NONE", 0),
+            ("SELECTED", "Selected Splats", "The splats (vertices) selected in Edit Mode", "NONE", 1),
+            (
+                "GROUP",
+                "Vertex Group",
+                "The splats in a vertex group, or where a boolean point attribute is true",
+                "NONE",
+                2,
+            ),
         ),
-        default="ALL",
+        default="AUTO",
+    )
+    view_source: EnumProperty(
+        name="Views",
+        description="Which cameras the run paints the scene from",
+        items=(
+            (
+                "CAMERAS",
+                "Scene Cameras",
+                "The ticked cameras, or the scene's cameras that see the most; an orbit ring when there are none",
+            ),
+            ("ORBIT", "Orbit Ring", "A ring of cameras around the splats (Cameras, Elevation below), not added"),
+        ),
+        default="CAMERAS",
     )
     selection_group: StringProperty(
         name="Group", description="Name of the vertex group or boolean point attribute that holds the splats"
     )
+
+    def preset_changes(self) -> list[str]:
+        """The names of the controls whose values differ from the preset's (the panel lists them)."""
+        values = PRESETS[self.preset]
+        changed = []
+        for name in CONFIG_FIELDS:
+            mine, its = getattr(self, name), getattr(values, name)
+            same = math.isclose(mine, its, rel_tol=1e-6) if isinstance(its, float) else mine == its
+            if not same:
+                changed.append(self.bl_rna.properties[name].name)
+        return changed
 
     def config(self, model_path: str = "") -> StylizeConfig:
         """The StylizeConfig these fields describe (ConfigError when a combination cannot work)."""

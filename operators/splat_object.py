@@ -215,6 +215,15 @@ def scene_from_object(obj) -> GaussianScene:
     )
 
 
+def run_selection(obj, mode: str) -> str:
+    """The Stylize setting as a run reads it (ALL, SELECTED or GROUP): AUTO is the Edit Mode selection when the
+    object is in Edit Mode with splats selected, as Blender's own tools act on it; otherwise every splat. Read it
+    before :func:`object_mode` leaves Edit Mode."""
+    if mode != "AUTO":
+        return mode
+    return "SELECTED" if obj.mode == "EDIT" and obj.data.total_vert_sel else "ALL"
+
+
 @in_object_mode
 def selection_mask(obj, mode: str, group: str = "") -> np.ndarray | None:
     """[N] bool of the splats a run should change: None for ALL; the Edit Mode selection (SELECTED); a vertex

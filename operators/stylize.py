@@ -8,11 +8,20 @@ import numpy as np
 from ..dresg_addon.blender import splat_mesh
 from ..dresg_addon.util.errors import DresgError, ImageError
 from . import ADDON_PACKAGE, job
-from .splat_object import is_splat_object, object_mode, restore_original, selection_mask, stylized_scene
+from .splat_object import (
+    is_splat_object,
+    object_mode,
+    restore_original,
+    run_selection,
+    selection_mask,
+    stylized_scene,
+)
 from .tasks import CancelJobOperator, JobOperator, JobState, tag_redraw
-from .views import active_cameras, fitting_cameras, scene_cameras
+from .views import fitting_cameras, view_plan
 
 IMAGE_KINDS = ("render", "proposal", "target", "residual")
+# What a run from one view leaves out, said before it starts (the Views panel and the operator).
+SINGLE_VIEW = "One view paints only the side it sees: the splats it does not see keep their colours"
 
 
 def addon_preferences(context):
@@ -63,11 +72,12 @@ def _unloaded_style_image(image) -> np.ndarray:
 def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[job.StylizeJob, str]:
     """A job for the active splat object from the panel's settings (not started), and a note for the user.
 
-    Views: the ticked cameras are the active views (when there are more than Max Views, the engine picks
-    that many of them by coverage); with none ticked, it chooses among all of the scene's cameras by
-    coverage, or among an orbit ring (not added to the scene) when there are none.
-    Model paths default to the add-on preferences.
+    Views: those :func:`~.views.view_plan` names, as the Views panel says them (when there are more than Max
+    Views, the engine picks that many of them by coverage). Splats: the Stylize setting as
+    :func:`~.splat_object.run_selection` reads it. Model paths default to the add-on preferences.
     """
+    from ..dresg_addon.method.medium import check_painting
+
     obj, scene = context.active_object, context.scene
     settings = scene.dresg
     prefs = addon_preferences(context)
@@ -76,32 +86,39 @@ def prepare_job(context, *, model_path: str = "", dino_path: str = "") -> tuple[
     config = settings.config(model_path=bpy.path.abspath(model_path) if model_path else "")
     dino_path = bpy.path.abspath(dino_path) if dino_path else ""
     style, style_name = style_image(settings)
+    check_painting(style, style_name)  # before the run: a painting too small turns the scene one colour
+    selection = run_selection(obj, settings.selection)  # read in Edit Mode, before leaving it
     with object_mode(obj):  # one exit from Edit Mode (and back) for both reads
-        mask = selection_mask(obj, settings.selection, settings.selection_group)
+        mask = selection_mask(obj, selection, settings.selection_group)
         splats = stylized_scene(obj)  # earlier runs' colours stay on the splats this one does not select
-    ticked = active_cameras(scene)
-    camera_objects = ticked or scene_cameras(scene)
-    views = list(range(len(ticked))) if ticked else None
-    note = ""
+    plan = view_plan(scene)
+    views = list(range(len(plan.camera_objects))) if plan.ticked else None
     if views is not None and 0 < config.max_views < len(views):
         views = None  # the engine picks Max Views of the ticked cameras by coverage
-        note = f"{len(ticked)} cameras ticked, Max Views is {config.max_views}: the ones that cover the most are used"
-    if camera_objects:
-        cameras = fitting_cameras(scene, obj, camera_objects)
-    else:
+    if plan.orbit:
         from ..dresg_addon.method.views import scaled_cameras
         from ..dresg_addon.scene.orbit import orbit_cameras
 
-        note = f"No cameras in the scene: using {settings.orbit_count} orbit cameras"
         up = splat_mesh.local_up(np.array(obj.matrix_world))
         ring = orbit_cameras(splats, settings.orbit_count, elevation_deg=settings.orbit_elevation, up=up)
         cameras = scaled_cameras(ring, settings.render_scale)
+    else:
+        cameras = fitting_cameras(scene, obj, plan.camera_objects)
     run = job.StylizeJob(
-        obj, splats, cameras, style, config, views=views, style_name=style_name, mask=mask, dino_path=dino_path
+        obj,
+        splats,
+        cameras,
+        style,
+        config,
+        views=views,
+        style_name=style_name,
+        mask=mask,
+        dino_path=dino_path,
+        views_key=plan.key(),
     )
+    note = f"Views: {plan.line}"
     if mask is not None:
-        note = f"{note}; " if note else ""
-        note += f"stylizing {int(mask.sum()):,} of {len(mask):,} splats (the selection)"
+        note += f"; stylizing {int(mask.sum()):,} of {len(mask):,} splats (the selection)"
     return run, note
 
 
@@ -142,7 +159,9 @@ class DRESG_OT_stylize(JobOperator, bpy.types.Operator):
         from ..dresg_addon.method.backends import slow_note
 
         run, note = prepare_job(context, model_path=self.model_path, dino_path=self.dino_path)
-        if note:
+        if view_plan(context.scene).single:  # before the run, not after it
+            self.report({"WARNING"}, f"{note}. {SINGLE_VIEW}")
+        else:
             self.report({"INFO"}, note)
         slow = slow_note(run.config)
         if slow:
@@ -171,6 +190,8 @@ class DRESG_OT_stylize(JobOperator, bpy.types.Operator):
         if run.state is JobState.ERROR:
             self.report({"ERROR"}, f"Stylize Gaussians failed: {run.error}")
             return {"CANCELLED"}
+        for line in run.notes():  # the Info editor keeps them; the panel shows them until the next run
+            self.report({"INFO"}, line)
         if run.state is JobState.CANCELLED:
             self.report({"WARNING"}, f"{run.text}; Restore Original Colours brings back the imported ones")
             return {"FINISHED"}  # the applied stages stay, as one undo step
@@ -211,11 +232,12 @@ class DRESG_OT_restore_colors(bpy.types.Operator):
         if job.StylizeJob.running_on(obj):  # the run must not write over the restored colours
             job.StylizeJob.active().cancel()
         settings = context.scene.dresg
+        selection = run_selection(obj, settings.selection)
         try:
             with object_mode(obj):  # one exit from Edit Mode (and back) for the selection and the write
                 mask = None
                 if self.selection_only:
-                    mask = selection_mask(obj, settings.selection, settings.selection_group)
+                    mask = selection_mask(obj, selection, settings.selection_group)
                 restore_original(obj, mask)
                 count = len(obj.data.vertices) if mask is None else int(mask.sum())
         except DresgError as error:
@@ -267,6 +289,24 @@ def _store_image(name: str, array: np.ndarray):
     return image
 
 
+class DRESG_OT_reset_preset(bpy.types.Operator):
+    """Set every control the preset names back to the preset's value"""
+
+    bl_idname = "dresg.reset_preset"
+    bl_label = "Reset to Preset"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        from .properties import apply_preset
+
+        settings = context.scene.dresg
+        changed = settings.preset_changes()
+        apply_preset(settings)
+        if changed:
+            self.report({"INFO"}, f"Reset to the preset's values: {', '.join(changed)}")
+        return {"FINISHED"}
+
+
 class DRESG_OT_dismiss(bpy.types.Operator):
     """Clear the outcome of the last stylization from the panel"""
 
@@ -286,5 +326,6 @@ classes = (
     DRESG_OT_cancel_stylize,
     DRESG_OT_restore_colors,
     DRESG_OT_open_view_images,
+    DRESG_OT_reset_preset,
     DRESG_OT_dismiss,
 )

@@ -5,6 +5,7 @@ is respected) by :mod:`dresg_addon.blender.camera`; the render resolution is the
 """
 
 import os
+from dataclasses import dataclass
 
 import bpy
 import numpy as np
@@ -13,7 +14,7 @@ from mathutils import Matrix
 
 from ..dresg_addon.blender import camera as blender_camera
 from ..dresg_addon.util.errors import DresgError
-from .splat_object import is_splat_object, object_mode, scene_from_object, selection_mask
+from .splat_object import is_splat_object, object_mode, run_selection, scene_from_object, selection_mask
 from .tasks import CancelJobOperator, Job, JobOperator, JobState
 
 ORBIT_COLLECTION = "DReSG Orbit Cameras"
@@ -28,6 +29,78 @@ def scene_cameras(scene) -> list:
 def active_cameras(scene) -> list:
     """The camera objects ticked in the Views list."""
     return [obj for obj in scene_cameras(scene) if obj.dresg_view.use]
+
+
+SEEN_ENOUGH = 0.95  # below this share of the splats seen by the cameras, the Views panel offers the orbit ring
+
+
+@dataclass
+class ViewPlan:
+    """The views a run will paint from, as the Views panel says it and :func:`~.stylize.prepare_job` takes them."""
+
+    camera_objects: list  # the candidate cameras (none: an orbit ring)
+    ticked: bool  # the cameras are the ticked ones: all of them are used unless Max Views is lower
+    views: int  # the views the run paints from, at most
+    line: str  # which views and why, for the panel
+
+    @property
+    def orbit(self) -> bool:
+        return not self.camera_objects
+
+    @property
+    def single(self) -> bool:
+        return self.views == 1
+
+    def key(self) -> str:
+        """Names the cameras, for what a run or the view selection measured of them (:func:`seen_share`)."""
+        return "\n".join(obj.name for obj in self.camera_objects)
+
+
+def view_plan(scene) -> ViewPlan:
+    """The views a run uses: the ticked cameras; with none ticked, the scene's cameras that see the most; with no
+    cameras, or Views set to Orbit Ring, an orbit ring (not added to the scene). Max Views caps each (the views
+    that see the most are kept)."""
+    settings = scene.dresg
+    cap = settings.max_views
+    cameras, ticked = scene_cameras(scene), active_cameras(scene)
+
+    def capped(count: int) -> int:
+        return min(count, cap) if cap else count
+
+    def most(count: int) -> str:
+        return f": the {cap} that see the most are used" if cap and cap < count else ""
+
+    if settings.view_source == "ORBIT" or not cameras:
+        count = settings.orbit_count
+        why = "no cameras" if not cameras else "Orbit Ring chosen"
+        return ViewPlan([], False, capped(count), f"{why}: a {count}-view orbit{most(count)}")
+    if ticked:
+        count = len(ticked)
+        only = "only it" if count == 1 else "only they"
+        line = f"{count} ticked camera{'s' if count > 1 else ''}: {only} will be used" if not most(count) else ""
+        return ViewPlan(ticked, True, capped(count), line or f"{count} ticked cameras{most(count)}")
+    count = len(cameras)
+    if count == 1:
+        return ViewPlan(cameras, False, 1, "1 scene camera: only it will be used")
+    if cap and cap < count:
+        line = f"{count} scene cameras, none ticked{most(count)}"
+    else:
+        line = f"{count} scene cameras, none ticked: those that see the splats are used"
+    return ViewPlan(cameras, False, capped(count), line)
+
+
+def seen_share(obj, plan: ViewPlan) -> float | None:
+    """The share of the splats the plan's cameras saw, as the last run or view selection on ``obj`` measured it
+    with these cameras; None when not measured (or for the orbit ring, which is placed around the splats)."""
+    measured = obj.get("dresg_views_seen")
+    if plan.orbit or measured is None or measured.get("cameras") != plan.key():
+        return None
+    return float(measured["seen"])
+
+
+def record_seen(obj, cameras: str, seen: float) -> None:
+    """Keep what a run or the view selection measured (:func:`seen_share`)."""
+    obj["dresg_views_seen"] = {"cameras": cameras, "seen": float(seen)}
 
 
 def camera_params(scene, camera_object) -> blender_camera.BlenderCameraParams:
@@ -63,7 +136,7 @@ def engine_cameras(scene, splat_object, camera_objects) -> list:
 
 def fit_size(scene) -> tuple[int, int]:
     """The cameras' image size while stylizing, before Fit Scale: the scene's render size, or that aspect
-    within the painting size when Fit Resolution is the preset's."""
+    within View Size when Fit Resolution says so."""
     settings = scene.dresg
     render = scene.render
     width = render.resolution_x * render.resolution_percentage // 100
@@ -195,8 +268,9 @@ class DRESG_OT_select_views(JobOperator, bpy.types.Operator):
         objects = scene_cameras(scene)
         cameras = fitting_cameras(scene, obj, objects)
         settings = scene.dresg
+        selection = run_selection(obj, settings.selection)
         with object_mode(obj):  # one exit from Edit Mode (and back) for both reads
-            mask = selection_mask(obj, settings.selection, settings.selection_group)
+            mask = selection_mask(obj, selection, settings.selection_group)
             splats = scene_from_object(obj)
         return SelectionJob(splats, cameras, settings.config(), [o.name for o in objects], mask)
 
@@ -236,6 +310,8 @@ class DRESG_OT_select_views(JobOperator, bpy.types.Operator):
             view.use = index in picks
             view.pick = picks.get(index, 0)
             view.coverage = float(selection.per_view_coverage[index])
+        if is_splat_object(context.active_object):  # what the picked cameras see: the Views panel shows it
+            record_seen(context.active_object, view_plan(context.scene).key(), selection.seen)
         total = selection.coverage[-1] if selection.coverage else 0.0
         message = f"Selected {len(picks)} of {len(objects)} views: coverage {100 * total:.2f}% ({selection.reason})"
         blind = [job.camera_names[index] for index in selection.blind]

@@ -4,7 +4,8 @@
     blender -b [scene.blend] -P scripts/stylize_headless.py -- --ply IN.ply --style STYLE.jpg --out OUT.ply [options]
     python scripts/stylize_headless.py --ply IN.ply --style STYLE.jpg --out OUT.ply [--blend scene.blend] [options]
 
-The second form needs the ``bpy`` module. Views: the cameras of ``--cameras`` (cameras.json, a COLMAP
+The second form needs the ``bpy`` module. Axes (``--axes``): ``auto`` unless given, as the import dialog's
+Automatic. Views: the cameras of ``--cameras`` (cameras.json, a COLMAP
 model, poses_bounds.npy) when given; else the .blend's cameras (the ticked ones, or all of them); else
 an orbit ring of ``--orbit`` cameras around the splats. Without a .blend the run starts from an empty
 scene, not Blender's startup file (whose default camera is not a view of the splats). Background mode runs the
@@ -89,15 +90,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--axes",
         choices=tuple(AXES),
-        default="opencv",
-        help="which way is up in the input file (default: opencv, y down)",
+        default="auto",
+        help="which way is up in the input file (default: auto, as the import dialog's Automatic: from the "
+        "cameras of --cameras or beside the file, else the splats, else opencv, y down)",
     )
     parser.add_argument("--cameras", help="camera file or folder (cameras.json, COLMAP, poses_bounds.npy)")
     parser.add_argument("--orbit", type=int, default=12, help="orbit cameras to add when there are none")
     knobs = {flag: (kind, text) for flag, _, kind, text in engine("commands.stylize").KNOBS}  # the CLI's words
     parser.add_argument("--stages", type=knobs["--stages"][0], help=knobs["--stages"][1])
-    parser.add_argument("--width", type=int, help="proposal width")
-    parser.add_argument("--height", type=int, help="proposal height")
+    parser.add_argument("--width", type=int, help="View Size X: the width the views are painted at")
+    parser.add_argument("--height", type=int, help="View Size Y: the height the views are painted at")
     for flag in ("--stroke-size", "--paint-scene", "--scene-light"):
         parser.add_argument(flag, type=knobs[flag][0], help=knobs[flag][1])
     medium = engine("method.medium")

@@ -241,6 +241,9 @@ def test_the_headless_script_takes_both_flags():
         + ["--scene-light", "0.25", "--medium", "ink"]
     )
     assert (args.stroke_size, args.paint_scene, args.scene_light, args.medium) == (3.0, 0.2, 0.25, "ink")
+    assert args.axes == "auto" and stylize_headless.AXES["auto"] == "AUTO"  # as the import dialog's default
+    helps = {flag: action.help for action in stylize_headless.build_parser()._actions for flag in action.option_strings}
+    assert "default: auto" in helps["--axes"]
     assert stylize_headless.OVERRIDES["medium"] == "medium"
     assert stylize_headless.OVERRIDES["scene_light"] == "scene_light"
     assert stylize_headless.OVERRIDES["stroke_size"] == "stroke_size"

@@ -319,7 +319,7 @@ def test_stylize_reports_input_errors_before_running(addon, tmp_path, monkeypatc
     bpy.context.view_layer.update()
     from dresg_addon.util.imageio import write_image
 
-    write_image(tmp_path / "style.png", np.zeros((4, 4, 3), np.float32))
+    write_image(tmp_path / "style.png", np.random.default_rng(0).uniform(size=(16, 16, 3)).astype(np.float32))
     bpy.context.scene.dresg.style_path = str(tmp_path / "style.png")
     with pytest.raises(RuntimeError, match="scale is not uniform"):
         bpy.ops.dresg.stylize()
@@ -354,7 +354,7 @@ def test_the_proposal_menu_its_notes_and_the_operators_warning_come_from_the_reg
 
     from dresg_addon.util.imageio import write_image
 
-    write_image(tmp_path / "style.png", np.zeros((4, 4, 3), np.float32))
+    write_image(tmp_path / "style.png", np.random.default_rng(0).uniform(size=(16, 16, 3)).astype(np.float32))
     settings.style_path, settings.proposal = str(tmp_path / "style.png"), "sd15"
     capfd.readouterr()
     with pytest.raises(RuntimeError, match="no-model: no such file or folder"):  # the registry's reason, from the run

@@ -64,8 +64,8 @@ def test_every_setting_and_operator_speaks_to_an_artist(addon):
     for name, text in texts:
         assert text.strip(), f"{name} has no tooltip or label"
         assert not any(word in text for word in JARGON), f"{name}: {text!r}"
-    for enum in ("medium", "proposal", "sh_rest"):
-        assert all(item.name != item.identifier for item in settings.properties[enum].enum_items)  # labels
+    for menu in ("medium", "proposal", "sh_rest", "selection", "view_source", "fit_resolution"):  # labels
+        assert all(item.name != item.identifier for item in settings.properties[menu].enum_items)
     assert {item.name for item in settings.properties["preset"].enum_items} >= {"Standard", "Preview"}
     assert addon.ui.panels.CATEGORY == "Stylize Gaussians"
 
@@ -128,17 +128,17 @@ def test_max_views_applies_to_ticked_cameras(addon, tmp_path):
     settings = bpy.context.scene.dresg
     from dresg_addon.util.imageio import write_image
 
-    write_image(tmp_path / "style.png", np.full((8, 8, 3), 0.5, np.float32))
+    write_image(tmp_path / "style.png", np.random.default_rng(0).uniform(size=(16, 16, 3)).astype(np.float32))
     settings.style_path = str(tmp_path / "style.png")
     bpy.ops.dresg.add_orbit_cameras(count=5)  # all ticked
     prepare_job = addon.operators.stylize.prepare_job
     settings.max_views = 2
     run, note = prepare_job(bpy.context)
     assert run.views is None and len(run.cameras) == 5  # the engine picks 2 of the 5 by coverage
-    assert "5 cameras ticked" in note and "Max Views is 2" in note
+    assert note == "Views: 5 ticked cameras: the 2 that see the most are used"
     settings.max_views = 0
     run, note = prepare_job(bpy.context)
-    assert run.views == [0, 1, 2, 3, 4] and note == ""
+    assert run.views == [0, 1, 2, 3, 4] and note == "Views: 5 ticked cameras: only they will be used"
 
 
 def test_stroke_size_paint_scene_light_and_medium_reach_the_run(addon, tmp_path):
@@ -157,7 +157,7 @@ def test_stroke_size_paint_scene_light_and_medium_reach_the_run(addon, tmp_path)
     _import(tmp_path, _scene())
     from dresg_addon.util.imageio import write_image
 
-    write_image(tmp_path / "style.png", np.full((8, 8, 3), 0.5, np.float32))
+    write_image(tmp_path / "style.png", np.random.default_rng(0).uniform(size=(16, 16, 3)).astype(np.float32))
     settings.style_path = str(tmp_path / "style.png")
     bpy.ops.dresg.add_orbit_cameras(count=2)
     settings.stroke_size, settings.scene_weight, settings.scene_light = 2.5, 0.8, 0.0
@@ -176,7 +176,7 @@ def test_stroke_size_paint_scene_light_and_medium_reach_the_run(addon, tmp_path)
     assert settings.medium == "auto"
     panel = [args[1] for name, args, kw in _drawn(addon.ui.panels.DRESG_PT_style) if name == "prop"]
     assert panel.index("stroke_size") < panel.index("scene_weight") < panel.index("scene_light") < panel.index("medium")
-    assert panel.index("medium") < panel.index("preset")
+    assert panel.index("preset") < panel.index("stroke_size")  # the preset above the controls it sets
 
     panels = addon.ui.panels
 
@@ -229,7 +229,7 @@ def test_fit_resolution_defaults_to_the_presets_size(addon, tmp_path):
     settings = scene.dresg
     from dresg_addon.util.imageio import write_image
 
-    write_image(tmp_path / "style.png", np.full((8, 8, 3), 0.5, np.float32))
+    write_image(tmp_path / "style.png", np.random.default_rng(0).uniform(size=(16, 16, 3)).astype(np.float32))
     settings.style_path = str(tmp_path / "style.png")
     bpy.ops.dresg.add_orbit_cameras(count=2)
     stylize = addon.operators.stylize

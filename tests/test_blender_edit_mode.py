@@ -109,7 +109,7 @@ def test_stylize_restore_export_and_views_on_the_edit_mode_selection(addon, tmp_
 def test_an_empty_edit_mode_selection_says_no_splat_is_selected(addon, tmp_path):
     pytest.importorskip("torch")
     obj = _import(tmp_path, _scene())
-    write_image(tmp_path / "style.png", np.full((8, 8, 3), 0.5, np.float32))
+    write_image(tmp_path / "style.png", np.random.default_rng(0).uniform(size=(16, 16, 3)).astype(np.float32))
     settings = bpy.context.scene.dresg
     settings.style_path, settings.selection = str(tmp_path / "style.png"), "SELECTED"
     _enter_edit_mode(obj)

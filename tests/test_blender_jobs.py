@@ -2,6 +2,7 @@
 operator shares, and Cancel for each of the three jobs: a stylization, a view selection and the PyTorch install
 (a fake pip that sleeps: nothing is downloaded). bpy module."""
 
+import json
 import os
 import sys
 import threading
@@ -10,7 +11,7 @@ import types
 
 import numpy as np
 import pytest
-from test_blender_artist import _import, _quick_selection_scene, _scene
+from test_blender_artist import _drawn, _import, _quick_selection_scene, _scene
 
 bpy = pytest.importorskip("bpy")
 pytestmark = pytest.mark.blender
@@ -224,7 +225,13 @@ def test_cancel_stylization_stops_after_a_stage(addon, tmp_path, monkeypatch):
     assert run.state is ops.tasks.JobState.CANCELLING and not bpy.ops.dresg.cancel_stylize.poll()
     _until(lambda: run.poll(), 120)
     assert run.state is ops.tasks.JobState.CANCELLED and run.text == f"Cancelled after {run.stages_applied} stage(s)"
-    assert 1 <= run.stages_applied < 8 and "dresg_stylize_settings" not in obj  # the result was not written
+    assert 1 <= run.stages_applied < 8
+    # Its stages' colours stay, so the object says it is stylized, and by what (kept in a saved .blend).
+    written = json.loads(obj["dresg_stylize_settings"])
+    assert written["cancelled_after_stage"] == run.stages_applied and written["style"] == "style.png"
+    assert written["stroke_size"] == settings.stroke_size and "seconds" not in written
+    labels = [kw.get("text") for name, _, kw in _drawn(addon.ui.panels.DRESG_PT_main) if name == "label"]
+    assert f"Stylized (cancelled after stage {run.stages_applied})" in labels
     assert bpy.ops.dresg.stylize.poll()
 
 

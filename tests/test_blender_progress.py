@@ -24,7 +24,7 @@ def _style(tmp_path) -> str:
 
 def test_the_poll_loop_shows_a_rising_bar_and_estimates_near_the_runs_time(addon, tmp_path):
     """A run on a worker thread, read the way the panel reads it (the job's fraction, text and eta after each poll):
-    the bar never goes back and ends at 1; the text says "estimating" until the first stage has ended; from then on
+    the bar never goes back and ends at 1; the text says "estimating" until the view selection has ended; from then on
     each estimate of the end (time so far + time left) is within 3x of the run's time (2x is the aim; a tiny
     scene's phases take milliseconds, so the bound is generous)."""
     ops = addon.operators
@@ -58,7 +58,7 @@ def test_the_poll_loop_shows_a_rising_bar_and_estimates_near_the_runs_time(addon
     assert len(estimates) > 1, "no estimate shown before the end"
     first = next(i for i, (_, _, eta, _) in enumerate(seen) if eta is not None)
     assert all("estimating time left" in text for _, f, _, text in seen[:first] if f > 0)
-    assert re.match(r"Stage [234]/4 ", seen[first][3]), seen[first][3]  # once the first stage has ended
+    assert seen[first][3].startswith("set-up: "), seen[first][3]  # once the view selection has ended
     for now, eta, text in estimates:
         assert seconds / 3 <= now + eta <= 3 * seconds, (now, eta, seconds, text)
     losses = [float(m) for *_, text in seen for m in re.findall(r"fit RMSE ([0-9.]+)", text)]
@@ -79,12 +79,12 @@ def test_the_report_after_a_selection_run_counts_the_selection(addon, tmp_path, 
     capfd.readouterr()
     assert bpy.ops.dresg.stylize() == {"FINISHED"}
     run = addon.operators.job.StylizeJob.current()
-    assert run.n_selected == left.sum() and run.n_stylized is not None
-    assert 0.9 * left.sum() <= run.n_stylized <= left.sum()
-    if run.n_stylized == left.sum():
+    assert run.n_selected == left.sum() and run.n_fitted is not None
+    assert 0.9 * left.sum() <= run.n_fitted <= left.sum() and 0 < run.n_changed <= run.n_fitted
+    if run.n_changed == left.sum():
         assert run.summary().startswith(f"Stylized {left.sum():,} selected splats in ")
-    else:
-        assert run.summary().startswith(f"Stylized {run.n_stylized:,} of the {left.sum():,} selected splats in ")
+    else:  # the count is of the splats whose colours changed
+        assert run.summary().startswith(f"Stylized {run.n_changed:,} of the {left.sum():,} selected splats in ")
     assert f"{len(left)} splats" not in run.summary()
     out = capfd.readouterr().out
     assert run.summary() in out  # the operator's report, as Blender prints it in background mode

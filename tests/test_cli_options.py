@@ -51,7 +51,7 @@ def _takes() -> dict[str, set[str]]:
 def paths(tmp_path_factory) -> dict[str, str]:
     """A style image that reads, a scene file that does not exist, and an output path."""
     folder = tmp_path_factory.mktemp("options")
-    write_image(folder / "style.png", np.full((8, 8, 3), 0.5, np.float32))
+    write_image(folder / "style.png", np.random.default_rng(0).uniform(size=(16, 16, 3)).astype(np.float32))
     return {"STYLE": str(folder / "style.png"), "MISSING": str(folder / "missing.ply"), "OUT": str(folder / "out")}
 
 

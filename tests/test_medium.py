@@ -14,10 +14,12 @@ from dresg_addon.method.loop import stylize
 from dresg_addon.method.medium import (
     INK_GUIDE_WEIGHT,
     LUMINANCE,
+    MIN_PAINTING_SIDE,
     RAMP_BINS,
     Ink,
     InkRamp,
     Paint,
+    check_painting,
     line_width,
     medium_for,
     read_medium,
@@ -25,7 +27,7 @@ from dresg_addon.method.medium import (
 )
 from dresg_addon.method.proposal.synth import SynthSettings, scale_ladder
 from dresg_addon.scene.demo import demo_style_image, line_drawing_image
-from dresg_addon.util.errors import ConfigError
+from dresg_addon.util.errors import ConfigError, ImageError
 from dresg_addon.util.imageio import read_image
 
 
@@ -53,13 +55,29 @@ def test_resolve_medium_reads_auto_takes_the_others_as_given_and_refuses_the_unk
     lines = line_drawing_image()
     medium, note = resolve_medium("auto", lines)
     assert medium == "ink" and "ink on paper" in note and "light ground" in note
-    assert resolve_medium("auto", demo_style_image()) == ("paint", None)
+    medium, note = resolve_medium("auto", demo_style_image())  # said too: the panel shows what it read
+    assert medium == "paint" and note.startswith("the painting reads as paint (")
     assert resolve_medium("paint", lines) == ("paint", None)
     assert resolve_medium("ink", demo_style_image()) == ("ink", None)
     with pytest.raises(ConfigError, match="medium"):
         resolve_medium("pencil", lines)
     with pytest.raises(ConfigError, match="medium"):
         preset("standard", medium="pencil")
+
+
+def test_a_painting_too_small_or_flat_to_paint_from_gets_one_line():
+    orange = np.float32([1.0, 0.5, 0.0])
+    for size, says in (((1, 1), "1x1 px"), ((4, 4), "4x4 px"), ((200, 8), "8x200 px")):
+        noisy = np.random.default_rng(0).uniform(size=(*size, 3)).astype(np.float32)
+        with pytest.raises(ImageError) as raised:
+            check_painting(noisy if size != (1, 1) else orange[None, None], "tiny.png")
+        message = str(raised.value)
+        assert message.startswith("tiny.png: the painting is " + says) and f"{MIN_PAINTING_SIDE} px" in message
+        assert "\n" not in message
+    with pytest.raises(ImageError, match=r"^flat.png: the painting is one flat colour \(#ff8000\)"):
+        check_painting(np.broadcast_to(orange, (64, 64, 3)), "flat.png")
+    check_painting(demo_style_image(), "demo")  # paintings pass, a drawing's two colours too
+    check_painting(np.where(np.eye(MIN_PAINTING_SIDE, dtype=bool)[..., None], 0.0, 1.0).astype(np.float32), "eye")
 
 
 def settled(config, style):
@@ -80,11 +98,13 @@ def test_ink_sets_its_guides_and_light_says_so_and_paint_keeps_the_settings():
     assert (ink.stages, plan.updates_per_stage, plan.schedule) == (1, passes, "fixed-1")
     assert any("one stage" in line for line in said)
     assert len(scale_ladder(SynthSettings().max_levels, SynthSettings())) == passes
+    assert min(SynthSettings().patch_sizes) == MIN_PAINTING_SIDE  # what check_painting asks of a painting
     _, sd15, sd15_plan, _ = settled(standard.with_(proposal="sd15", medium="ink"), line_drawing_image())
     assert sd15_plan == standard.plan() and sd15.stages == standard.stages  # the scheduler's stages: left as they are
     medium, paint, plan, said = settled(standard, demo_style_image())
     assert isinstance(medium, Paint) and paint == standard.with_(medium="paint") and plan == standard.plan()
-    assert not said and medium.best_views == standard.plan().best_views
+    assert [line.split(" (")[0] for line in said] == ["the painting reads as paint"]  # what it read, nothing changed
+    assert medium.best_views == standard.plan().best_views
     with pytest.raises(ConfigError, match="ink medium paints the colours with the colour solve"):
         settled(standard.with_(medium="ink", optimize_geometry=True), line_drawing_image())
     assert settled(PRESETS["paper"], line_drawing_image())[1].medium == "paint"

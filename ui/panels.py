@@ -4,6 +4,7 @@ import textwrap
 
 import bpy
 
+from ..dresg_addon.method.config import preset_label
 from ..dresg_addon.method.medium import allows_geometry, holds_scene_light, sets_its_own_stages
 from ..operators import dependencies, job
 from ..operators.splat_nodes import (
@@ -14,10 +15,10 @@ from ..operators.splat_nodes import (
     INPUT_SOFT,
     INPUT_SOLID,
 )
-from ..operators.splat_object import has_stylized_colors, is_splat_object, splat_modifier
-from ..operators.stylize import addon_preferences
+from ..operators.splat_object import has_stylized_colors, is_splat_object, run_selection, splat_modifier
+from ..operators.stylize import SINGLE_VIEW, addon_preferences
 from ..operators.tasks import JobState
-from ..operators.views import SelectionJob, fit_size, scene_cameras
+from ..operators.views import SEEN_ENOUGH, SelectionJob, fit_size, scene_cameras, seen_share, view_plan
 
 CATEGORY = "Stylize Gaussians"
 
@@ -83,7 +84,7 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
         row.prop(obj, "dresg_up_axis")
         row.prop(obj, "dresg_up_flip", toggle=True)
         if "dresg_stylize_settings" in obj:
-            box.label(text="Stylized", icon="BRUSH_DATA")
+            box.label(text=_stylized_label(obj), icon="BRUSH_DATA")
 
         if not dependencies.torch_available():
             from .preferences import draw_dependencies
@@ -99,9 +100,19 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
             layout.progress(factor=current.fraction, type="BAR", text=current.text)
             layout.operator("dresg.cancel_stylize", icon="CANCEL")
         else:
+            settings = context.scene.dresg
+            if view_plan(context.scene).single:  # before the run, not after it
+                alert = layout.row()
+                alert.alert = True
+                _wrapped(alert, f"{SINGLE_VIEW} (Views panel)", icon="ERROR")
             row = layout.row()
             row.scale_y = 1.5
-            row.operator("dresg.stylize", icon="BRUSH_DATA")
+            row.operator("dresg.stylize", text=stylize_label(obj, settings), icon="BRUSH_DATA")
+        if mine and current.state in (JobState.DONE, JobState.CANCELLED):  # the last run's notes, until the next
+            notes = layout.box()
+            summary = [current.summary()] if current.n_changed is not None else []  # once colours were written
+            for line in [*summary, *current.notes()]:
+                _wrapped(notes, line[0].upper() + line[1:], icon="INFO")
         if mine and current.state is JobState.ERROR:
             box = layout.box()
             box.alert = True
@@ -117,9 +128,34 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
             layout.prop(obj, "dresg_strength", slider=True)
         row = layout.row(align=True)
         row.operator("dresg.restore_colors", icon="LOOP_BACK")
-        if context.scene.dresg.selection != "ALL":
+        if run_selection(obj, context.scene.dresg.selection) != "ALL":
             row.operator("dresg.restore_colors", text="Selection", icon="LOOP_BACK").selection_only = True
         row.operator("dresg.export_splats", text="Export", icon="EXPORT")
+
+
+def stylize_label(obj, settings) -> str:
+    """The Stylize button's text: which splats it changes when that is not all of them, and when an Edit Mode
+    selection is left out (Stylize set to All Splats)."""
+    selection = run_selection(obj, settings.selection)
+    selected = obj.mode == "EDIT" and obj.data.total_vert_sel
+    if selection == "ALL" and selected:
+        return "Stylize All (selection ignored)"
+    if selection == "SELECTED" and obj.mode == "EDIT":
+        return f"Stylize {obj.data.total_vert_sel:,} Selected Splats"
+    return "Stylize Gaussians"
+
+
+def _stylized_label(obj) -> str:
+    import json
+
+    try:
+        settings = json.loads(obj["dresg_stylize_settings"])
+    except (TypeError, ValueError):
+        return "Stylized"
+    for how in ("cancelled", "failed"):
+        if f"{how}_after_stage" in settings:
+            return f"Stylized ({how} after stage {settings[f'{how}_after_stage']})"
+    return "Stylized"
 
 
 def _draw_backend_notes(layout, context, settings) -> None:
@@ -153,6 +189,16 @@ class DRESG_PT_style(ChildPanel, bpy.types.Panel):
             layout.prop(settings, "style_path")
         else:
             layout.template_ID(settings, "style_image", open="image.open")
+        # The preset above the controls it sets (Blender's preset menus apply every value they name); the
+        # controls changed since are named, with a way back.
+        row = layout.row(align=True)
+        row.prop(settings, "preset")
+        changed = settings.preset_changes()
+        if changed:
+            row.operator("dresg.reset_preset", text="", icon="LOOP_BACK")
+            _wrapped(
+                layout, f"{preset_label(settings.preset)} (modified): {', '.join(changed)}", icon="DECORATE_OVERRIDE"
+            )
         layout.prop(settings, "stroke_size")
         layout.prop(settings, "scene_weight", slider=True)
         light = layout.row()
@@ -162,7 +208,6 @@ class DRESG_PT_style(ChildPanel, bpy.types.Panel):
         layout.prop(settings, "selection")
         if settings.selection == "GROUP":
             layout.prop_search(settings, "selection_group", context.active_object, "vertex_groups")
-        layout.prop(settings, "preset")
         layout.prop(settings, "proposal")
         _draw_backend_notes(layout, context, settings)
 
@@ -183,7 +228,7 @@ class DRESG_PT_style_advanced(ChildPanel, bpy.types.Panel):
         stages.prop(settings, "stages")
         layout.prop(settings, "max_views")
         column = layout.column(align=True)
-        column.prop(settings, "proposal_width", text="Fit Size X")
+        column.prop(settings, "proposal_width")
         column.prop(settings, "proposal_height", text="Y")
         for name in ("fit_resolution", "render_scale"):
             layout.prop(settings, name)
@@ -205,21 +250,28 @@ class DRESG_PT_views(ChildPanel, bpy.types.Panel):
         scene = context.scene
         settings = scene.dresg
         cameras = scene_cameras(scene)
-        if cameras:
+        layout.row().prop(settings, "view_source", expand=True)
+        plan = view_plan(scene)
+        _wrapped(layout, plan.line, icon="ERROR" if plan.single else "INFO")
+        seen = seen_share(context.active_object, plan)
+        if plan.single or (seen is not None and seen < SEEN_ENOUGH):
+            box = layout.box()
+            if seen is not None and seen < SEEN_ENOUGH:
+                _wrapped(box, f"The cameras saw {seen:.0%} of the splats: the other {1 - seen:.0%} keep their colours")
+            else:
+                _wrapped(box, SINGLE_VIEW)
+            box.prop_enum(settings, "view_source", "ORBIT", text="Use an Orbit Ring", icon="CON_FOLLOWPATH")
+        if cameras and settings.view_source == "CAMERAS":
             layout.template_list("DRESG_UL_cameras", "", scene, "objects", settings, "camera_index", rows=4)
             row = layout.row(align=True)
             row.operator("dresg.tick_views", text="All").use = True
             row.operator("dresg.tick_views", text="None").use = False
-            ticked = sum(obj.dresg_view.use for obj in cameras)
-            layout.label(text=f"{ticked} of {len(cameras)} ticked" if ticked else "None ticked: all cameras are used")
             selecting = SelectionJob.active()
             if selecting is not None:
                 layout.progress(factor=selecting.fraction, type="BAR", text=f"{selecting.text} (Esc cancels)")
                 layout.operator("dresg.cancel_select_views", icon="CANCEL")
             else:
                 layout.operator("dresg.select_views", icon="VIEWZOOM")
-        else:
-            layout.label(text="No cameras: stylizing uses an orbit ring", icon="INFO")
         column = layout.column(align=True)
         row = column.row(align=True)
         row.prop(settings, "orbit_count")

@@ -227,6 +227,7 @@ def run(args) -> int:
     from ..method.bookkeeping import ProgressLines
     from ..method.config import check_run_settings
     from ..method.loop import selection_mask, stylize
+    from ..method.medium import check_painting
     from ..method.views import scaled_cameras
     from ..scene.io import write_scene
     from ..util.fileutil import check_room
@@ -236,6 +237,7 @@ def run(args) -> int:
     check_run_settings(config)
     device = None if args.device is None else parse_device(args.device)
     style = read_rgb(args.style, max_side=STYLE_MAX_SIDE)  # before the scene, so a bad style path fails at once
+    check_painting(style, args.style)
     scene, cameras = load_scene_and_cameras(args)
     if not (args.render_scale > 0 and args.render_scale == args.render_scale):
         raise ConfigError(f"--render-scale must be > 0 (got {args.render_scale})")

@@ -147,8 +147,10 @@ class ProgressModel:
     the end, and the bar jumps forward to it. It reaches 1 at the end.
 
     The time left is the weight of the parts still to come plus what remains of the current part's expected
-    time; None (shown as "estimating") until every kind of part still to come has been timed once, in practice
-    until the first stage has ended. It counts every stage: when the stages stop early, the run ends sooner.
+    time; None (shown as "estimating") until a part has ended (the view selection, or the set-up when the views
+    are given): the parts not timed yet are priced at their prior costs x the seconds per unit the ended parts
+    took, then at their kind's own times once those have run. It counts every stage: when the stages stop early,
+    the run ends sooner.
     """
 
     def __init__(self, clock: Callable[[], float] = time.perf_counter):
@@ -275,7 +277,7 @@ class ProgressModel:
 
     def seconds_left(self, order: int, now: float) -> float | None:
         remaining = [part for part in self.parts() if self.order(*part) >= order]
-        if any(part not in self.timed and self._measured(part[0]) is None for part in remaining):
+        if not any(self._units(kind) > 0 for kind, _ in self.timed):  # no seconds per unit of cost measured yet
             return None
         left = 0.0
         for part in remaining:
@@ -298,6 +300,12 @@ class StageUpdate:
     images: dict[str, dict[str, np.ndarray]]  # view name -> render / proposal / target / residual [H, W, 3]
 
 
+class Note(str):
+    """A message the artist acts on, not only a log line: what the run read or chose for them (the medium, the
+    views) and advice on their settings (Stroke Size, Scene Light). It reaches ``messages`` as any message does;
+    the Blender panel keeps the notes of the last run under its Stylize button."""
+
+
 class RunHooks:
     """The caller's callbacks, each optional; the run's clock and its progress (:class:`ProgressModel`)."""
 
@@ -315,6 +323,10 @@ class RunHooks:
         self.start_time = clock()
         self.stages = 0  # set by plan()
         self.model = ProgressModel(clock)
+
+    def note(self, message: str) -> None:
+        """Say ``message`` as a :class:`Note`."""
+        self.say(Note(message))
 
     @property
     def first_stage(self) -> int:

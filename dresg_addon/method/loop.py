@@ -238,8 +238,10 @@ class Stylization:
         self.device, self.dino_path = device, dino_path
         self.style_rgb = _checked_style(style_rgb)
         self.entry = backend(config.proposal)
-        self.medium = medium_for(config, self.style_rgb, hooks.say)
-        self.config, self.plan = config, plan = self.medium.settle(config, plan or config.plan(), self.entry, hooks.say)
+        self.medium = medium_for(config, self.style_rgb, hooks.note)
+        self.config, self.plan = config, plan = self.medium.settle(
+            config, plan or config.plan(), self.entry, hooks.note
+        )
         check_run_settings(config, plan)
         self.raster = config.raster(near)
         self.size = (config.proposal_height, config.proposal_width)
@@ -277,7 +279,8 @@ class Stylization:
         self.cameras = [cameras[v] for v in self.selection.indices]
         self.names = [view_name(cameras[v], v) for v in self.selection.indices]
         hooks.model.set_counts(views=len(self.cameras))
-        self.hooks.say(f"active views: {len(self.cameras)} of {len(cameras)} ({self.selection.reason})")
+        how = "as given" if views is not None else f"picked by coverage: {self.selection.reason}"
+        self.hooks.note(f"active views: {len(self.cameras)} of {len(cameras)} cameras ({how})")
         self.hooks.check_cancel()
 
     def prepare(self, content_images: dict[int, np.ndarray] | None) -> None:
@@ -371,7 +374,7 @@ class Stylization:
         fit_scale = float(np.mean([math.sqrt(c.width * c.height / proposal_pixels) for c in self.cameras]))
         note = self.medium.footprint_note(self.footprint, self.entry, self.config, fit_scale)
         if note:
-            self.hooks.say(note)
+            self.hooks.note(note)
 
     def _set_up_proposals(self, base_renders: list[torch.Tensor], content_images) -> None:
         """The proposal backend and its fixed references at the proposal size: style, contents, coverage."""
@@ -393,7 +396,7 @@ class Stylization:
         self.backend = self.entry.make(self.config, self.plan, self.brightness, self.device)
         note = light_note(self.entry, self.config, self.brightness)
         if note:
-            self.hooks.say(note)
+            self.hooks.note(note)
 
     def _resume_or_encode(self, base_renders: list[torch.Tensor]) -> None:
         """Resume from a checkpoint of the same run, else encode the base renders; the style distances so far."""
@@ -590,7 +593,7 @@ class Stylization:
         }
         if work.stop_reason:
             entry["early_stop"] = True
-            self.hooks.say(f"stopping after stage {n} of {len(self.stages)}: {work.stop_reason}")
+            self.hooks.note(f"stopping after stage {n} of {len(self.stages)}: {work.stop_reason}")
         self.record.save_images(n, work.images)
         self.record.append(entry)
         self.record.save_checkpoint(n, self.state.params(), self.fitter.optimizer, self.states)

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..util.errors import ConfigError
+from ..util.errors import ConfigError, ImageError, with_path
 
 if TYPE_CHECKING:
     import torch
@@ -52,6 +52,9 @@ INK_GUIDE_WEIGHT = 256.0  # a guided view keeps what the earlier views painted (
 INK_FIRST_VIEW = 0.5  # a splat's colour from the earliest view that draws it at least half the most any view does
 INK_PASSES = 12  # one synthesis pass per rung of the synth ladder (3 levels x 4 patch sizes: synth.scale_ladder)
 RAMP_BINS = 64
+# A painting the synthesis can paint from: no side shorter than its smallest patch (proposal.synth.SynthSettings
+# .patch_sizes), so it holds one stroke at least; and more than one colour (a flat painting turns the scene flat).
+MIN_PAINTING_SIDE = 9
 # What each medium means, for the CLI's help and the panel's menu: (label, description).
 MEDIUM_LABELS = {
     "auto": (
@@ -94,6 +97,27 @@ def read_medium(style_rgb: np.ndarray) -> MediumReading:  # [H, W, 3] in [0, 1]
     )
 
 
+def check_painting(style_rgb: np.ndarray, name: str) -> None:  # [H, W, 3] in [0, 1]
+    """ImageError in one line, naming the painting ``name``, when it is too small to paint from: a side shorter
+    than the synthesis's smallest patch, or a single colour (at 8 bits). The CLI and the Blender operator call it
+    before a run: such a painting runs, and turns the whole scene one flat colour."""
+    height, width = style_rgb.shape[:2]
+    if min(height, width) < MIN_PAINTING_SIDE:
+        raise ImageError(
+            with_path(
+                name,
+                f"the painting is {width}x{height} px, smaller than the {MIN_PAINTING_SIDE} px patches its strokes "
+                f"are copied in: use a painting at least {MIN_PAINTING_SIDE} px on each side (a few hundred is usual)",
+            )
+        )
+    levels = np.round(np.clip(np.asarray(style_rgb, np.float32), 0.0, 1.0) * 255.0).astype(np.uint8)
+    if (levels == levels[0, 0]).all():
+        colour = "#" + "".join(f"{int(c):02x}" for c in levels[0, 0, :3])
+        raise ImageError(
+            with_path(name, f"the painting is one flat colour ({colour}): there are no marks or colours to paint from")
+        )
+
+
 def resolve_medium(medium: str, style_rgb: np.ndarray) -> tuple[str, str | None]:
     """("paint" or "ink", a line for the user or None): ``auto`` reads the painting, the others are taken as given."""
     if medium not in MEDIA:
@@ -102,7 +126,7 @@ def resolve_medium(medium: str, style_rgb: np.ndarray) -> tuple[str, str | None]
         return medium, None
     reading = read_medium(style_rgb)
     if not reading.ink:
-        return "paint", None
+        return "paint", f'the painting reads as paint ({reading.describe()}) (medium "ink" draws it as ink on paper)'
     return "ink", (
         f"the painting reads as ink on paper ({reading.describe()}): drawing it as ink, the views in turn and no "
         'scene light held (medium "paint" paints it as a painting)'

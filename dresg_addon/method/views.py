@@ -248,6 +248,7 @@ class ActiveViews:
     per_view_coverage: list[float]  # capped coverage each camera gives on its own
     reason: str  # why the selection stopped
     blind: list[int] = field(default_factory=list)  # cameras that see nothing
+    seen: float = 1.0  # share of the (selected) splats the chosen cameras see: the rest a run leaves as they are
 
 
 def scaled_cameras(cameras: Sequence[Camera], scale: float) -> list[Camera]:
@@ -332,6 +333,12 @@ def select_active_views(
     for v in range(len(cameras)):
         row = w[v].to_dense().numpy().astype(np.float64)
         per_view.append(float(capped_coverage(row[targets], support[targets]).sum() / max(targets.sum(), 1)))
+    picked = torch.isin(w.indices()[0], torch.tensor(list(chosen.views), dtype=torch.long))
+    seen_weight = torch.zeros(len(scene), dtype=torch.float64).scatter_reduce_(
+        0, w.indices()[1][picked], w.values()[picked].double(), "amax"
+    )
+    count = int(np.count_nonzero(mask)) if mask is not None else len(scene)
+    seen = float((seen_weight >= settings.min_support).sum()) / max(count, 1)
     return ActiveViews(
-        list(chosen.views), list(chosen.coverage), per_view, chosen.stop_reason, list(chosen.blind_views)
+        list(chosen.views), list(chosen.coverage), per_view, chosen.stop_reason, list(chosen.blind_views), seen
     )
