@@ -34,14 +34,17 @@ some such view sees edge-on is left whole). Splats wider than ``MAX_PER_AXIS`` a
 mark. Both are counted in the summary. The splats split are taken in the order of the views' blend weight on them
 (what the images show most first) while the count added stays under the cap.
 
-What the render keeps (``bench/refine.py``, 16 orbit views at 448x320 and 16 novel views between them, stroke
-sigma 4.5 px): the bonsai RMSE_BONSAI. Alone (the split splats rendered without the rest of the scene) the
-change is about twice that: the rest is hidden by what lies in front. What is left is not in the plane: children
-sort by their own centres' depth, so on a tilted surface some pass behind a neighbour the parent was in front of
-(on Luigi, big splats on a small high-contrast object, RMSE 0.020, single pixels up to 0.7), and the views where
-a child projects thinner than planned. The same comparison (4 fit and 4 novel views) against the opacities of an
-equal mixture: fitted 0.0045 / 0.0054 RMSE (fit / novel), the mixture's weights as opacities 0.0053 / 0.0062, as
-optical depths 0.0069 / 0.0080 (pixels off by up to 0.19); a child sigma of 0.6 or 1.0 h within 0.0003 of 0.8 h.
+What the render keeps (``bench/refine.py``: 16 orbit views at 448x320, 16 novel views between them, stroke sigma 4.5
+px). The bonsai: 1,185 splats split into 8,529 (+2.7%); RMSE over the covered pixels 0.0033 on the fit and on the
+novel views (0.0057 in the worst view), no pixel off by more than 0.092, 0.006% of them by more than 0.05. The demo
+scene: nothing split (its splats are about 1 px in these views); with a stroke sigma of 0.9 px, +35% (the cap) at
+RMSE 0.0040, at most 0.106. Rendered alone, the bonsai's split splats change about twice as much: the rest of the
+scene hides part of it. What is left is not in the plane: children sort by their own centres' depth, so on a tilted
+surface some pass behind a neighbour their parent was in front of (on Luigi, large splats on a small high-contrast
+object, +25%, RMSE 0.020, single pixels up to 0.7). Against the opacities of an equal mixture, on 4 fit and 4 novel
+bonsai views (an earlier, wider choice of 2,071 splats): fitted 0.0045 / 0.0054 RMSE (fit / novel), the mixture's
+weights as opacities 0.0053 / 0.0062, as optical depths 0.0069 / 0.0080 (pixels up to 0.19 off); a child sigma of
+0.6 h or 1.0 h instead of 0.8 h within 0.0003 of it.
 
 Output order: the input splats in their order, each split splat's slot holding its centre child, then the other
 children, parent by parent. ``parent_index[i]`` is the input splat output splat i comes from (i itself for the
@@ -81,7 +84,7 @@ class SplitResult:
     summary: str  # e.g. "split 412 wide splats into 18,300"
     split: int  # splats split
     added: int  # splats added (M - len(input))
-    still_wide: int  # wide splats left wider than the marks: split at the per-axis limit, or left out by the cap
+    still_wide: int  # wide splats left wider than the marks: children held wide, or left whole (edge-on, the cap)
 
 
 def split_wide_splats(
@@ -98,7 +101,8 @@ def split_wide_splats(
     ``backends.synth_stroke_sigma(stroke_size)`` times the fit size over the proposal size. ``max_added``: at most
     this many splats are added. ``settings``: the renders that measure the views (default ``RasterSettings()``). A
     scene with nothing wider than the marks comes back unchanged (the same object)."""
-    if not (isinstance(stroke_sigma, int | float) and math.isfinite(stroke_sigma) and stroke_sigma > 0):
+    number = isinstance(stroke_sigma, int | float | np.floating) and not isinstance(stroke_sigma, bool)
+    if not (number and math.isfinite(stroke_sigma) and stroke_sigma > 0):
         raise ConfigError(f"the stroke scale {stroke_sigma!r} must be a positive number of pixels")
     if isinstance(max_added, bool) or not isinstance(max_added, int | np.integer) or max_added < 0:
         raise ConfigError(f"the cap on splats added {max_added!r} must be a whole number >= 0")
