@@ -72,9 +72,10 @@ MAX_PER_AXIS = 9  # children per axis at most (81 per splat)
 MIN_DRAWN = 0.1  # a splat whose best view draws it with less weight than this per pixel of its footprint stays
 STRONG_VIEW = 0.5  # views drawing a splat at least this share of its best view's weight hold its children's width
 ALPHA_MIN, ALPHA_MAX = 1.0 / 255.0, 0.99  # the rasterizer's alpha test and clamp
-# The opacity table: logits from -5 to 7 (a splat fainter than o = 0.007 is never shown enough to be split).
-_TABLE_LOGITS = np.linspace(-5.0, 7.0, 25)
-_PLANE_EXTENT, _PLANE_POINTS, _SOLVE_ITERATIONS = 4.0, 49, 40
+# The opacity table: logits -5 to 7 (a splat fainter than o = 0.007 is never drawn enough to be split), on a 33 x 33
+# plane: its largest coverage errors are within 0.001 of a table at half the step on 49 x 49 points (5x the time).
+_TABLE_LOGITS = np.linspace(-5.0, 7.0, 13)
+_PLANE_EXTENT, _PLANE_POINTS, _SOLVE_ITERATIONS = 4.0, 33, 40
 
 
 @dataclass
