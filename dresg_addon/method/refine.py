@@ -38,7 +38,7 @@ What the render keeps (``bench/refine.py``: 16 orbit views at 448x320, 16 novel 
 px). The bonsai: 1,185 splats split into 8,529 (+2.7%); RMSE over the covered pixels 0.0033 on the fit and on the
 novel views (0.0057 in the worst view), no pixel off by more than 0.092, 0.006% of them by more than 0.05. The demo
 scene: nothing split (its splats are about 1 px in these views); with a stroke sigma of 0.9 px, +35% (the cap) at
-RMSE 0.0040, at most 0.106. Rendered alone, the bonsai's split splats change about twice as much: the rest of the
+RMSE 0.0041, at most 0.110. Rendered alone, the bonsai's split splats change about twice as much: the rest of the
 scene hides part of it. What is left is not in the plane: children sort by their own centres' depth, so on a tilted
 surface some pass behind a neighbour their parent was in front of (on Luigi, large splats on a small high-contrast
 object, +25%, RMSE 0.020, single pixels up to 0.7). Against the opacities of an equal mixture, on 4 fit and 4 novel
