@@ -216,3 +216,49 @@ def test_grid_keeps_the_variance():
 def test_bad_settings_are_refused(stroke, cap):
     with pytest.raises(ConfigError):
         split_wide_splats(wide_scene(), cameras(), stroke, cap)
+
+
+# --- through a run --------------------------------------------------------------------------------------
+
+
+def _run_on_wide_scene(**kwargs):
+    from dresg_addon.method.config import preset_run
+    from dresg_addon.method.loop import stylize
+
+    # Stroke Size 0.5: marks 4.5 px wide at these cameras' size, narrower than four of the five wide splats
+    config, plan = preset_run(
+        "cpu", stages=1, post_steps=0, proposal_width=32, proposal_height=24, stroke_size=0.5, split_cap=0.5
+    )
+    style = np.random.default_rng(3).uniform(0.0, 1.0, (24, 32, 3)).astype(np.float32)
+    return stylize(wide_scene(), cameras(), style, config, plan=plan, **kwargs)
+
+
+def test_a_run_splits_the_wide_splats_says_so_and_returns_the_parents():
+    scene, said = wide_scene(), []
+    result = _run_on_wide_scene(messages=said.append)
+    n = len(scene)
+    assert result.parents is not None and len(result.parents) == len(result.scene) > n
+    np.testing.assert_array_equal(result.parents[:n], np.arange(n))
+    assert result.parents[n:].max() < 5  # the five wide splats' children, none of the fine backdrop's
+    assert any(line.startswith("split ") and "wide splats into" in line for line in said)
+    assert np.isfinite(result.scene.sh_dc).all()
+    # At strength 0 every splat, the children too, has its parent's colour: Restore stays exact.
+    untouched = _run_on_wide_scene(strength=0.0).scene
+    np.testing.assert_array_equal(untouched.sh_dc, scene.sh_dc[result.parents])
+
+
+def test_a_masked_run_splits_only_the_selection_and_keeps_every_other_splat():
+    scene = wide_scene()
+    selected = np.zeros(len(scene), bool)
+    selected[[0, 1]] = True  # two of the wide splats
+    result = _run_on_wide_scene(mask=selected)
+    n = len(scene)
+    assert set(np.unique(result.parents[n:])) == {0, 1}
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh_dc"):
+        np.testing.assert_array_equal(getattr(result.scene, name)[:n][~selected], getattr(scene, name)[~selected])
+
+
+def test_without_a_cap_the_scene_keeps_its_splats():
+    from dresg_addon.method.config import PLANS
+
+    assert all(plan.split_cap == 0.0 for plan in PLANS.values())  # no preset splits until it is measured better

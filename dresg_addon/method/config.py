@@ -56,6 +56,9 @@ class Plan:
     # Each splat from the views that draw it most, weights (d / max d)^p (color_solve.best_view_colors); 0: the
     # joint fit (docs/decisions/005-best-views.md).
     best_views: float = 0.0
+    # Splats the active views draw wider than the strokes are split first, adding at most this share of the scene
+    # (method/refine.py); 0: the scene keeps its splats.
+    split_cap: float = 0.0
     ablation: Ablation = Ablation()
 
     def __post_init__(self) -> None:
@@ -66,6 +69,7 @@ class Plan:
                 (self.fit_steps >= 0 and self.post_steps >= 0, "fit_steps and post_steps must be >= 0"),
                 (0 <= self.early_stop < 1, "early_stop must be in [0, 1) (0: off)"),
                 (math.isfinite(self.best_views) and self.best_views >= 0, "best_views must be >= 0"),
+                (math.isfinite(self.split_cap) and 0 <= self.split_cap <= 4, "split_cap must be in [0, 4]"),
             ]
         )
 

@@ -58,6 +58,7 @@ from .fitting import (
 from .losses import FitLossWeights
 from .medium import medium_for
 from .optim import FitOptimizerSettings, make_fit_optimizer, scene_extent
+from .refine import split_wide_splats
 from .schedule import Stage, stage_gammas, stage_timesteps
 from .style_distance import sliced_wasserstein_patches
 from .targets import proposal_residual, residual_target
@@ -75,6 +76,9 @@ class StylizeResult:
     log: list[dict]
     seconds: float
     stylized: int = 0  # splats the run fitted: the selected (or all) splats that an active view sees
+    # [M] the input splat each output splat comes from, when splats were split (refine.py): i for i < the input's
+    # count, the children after them; None when the scene kept its splats
+    parents: np.ndarray | None = None
 
 
 def stylize(
@@ -117,6 +121,7 @@ def stylize(
     record = RunRecord(checkpoint_dir, log_path, save_views_dir)
     run = Stylization(scene, style_rgb, config, hooks, record, mask, device, dino_path, plan, near)
     run.select_views(cameras, views)  # Sec. 4.3, Eqs. 13-15: active views by capped coverage
+    run.refine()  # splats as fine as the marks: the ones the views draw wider are split, the render kept
     run.prepare(content_images)  # seen Gaussians, base renders, content views, proposal states
     for stage in run.remaining_stages():  # Sec. 4.2: the DDIM states in stages, gamma_n per stage
         run.propose(stage)  # Sec. 4.1: an attention-guided proposal per view
@@ -127,8 +132,8 @@ def stylize(
             break
     run.post_stage()  # covariance colour transfer toward the style, then fitting to it
     result = run.result()
-    if strength < 1.0:
-        result.scene = blend_colors(scene, result.scene, strength)
+    if strength < 1.0:  # the split scene's children carry their parent's colours: the blend is exact for them too
+        result.scene = blend_colors(run.scene, result.scene, strength)
     return result
 
 
@@ -283,6 +288,30 @@ class Stylization:
         self.hooks.note(f"active views: {len(self.cameras)} of {len(cameras)} cameras ({how})")
         self.hooks.check_cancel()
 
+    def refine(self) -> None:
+        """Splats as fine as the marks (:func:`~.refine.split_wide_splats`): those the active views draw wider than
+        the backend's strokes are split into children that render as they did, at most the plan's ``split_cap`` of
+        the scene more; the selection and the input's colours carry over to the children."""
+        self.parents = None
+        cap = int(self.plan.split_cap * len(self.scene))
+        if cap <= 0 or self.entry.stroke_sigma is None:
+            return
+        self.hooks.report(0, 0, 1, "select", float("nan"), "finding the splats wider than the marks")
+        marks = self.entry.stroke_sigma(self.config.stroke_size) * self.fit_scale()
+        split = split_wide_splats(self.scene, self.cameras, marks, cap, self.raster, only=self.mask)
+        self.hooks.check_cancel()
+        if split.added == 0:
+            return
+        self.hooks.note(split.summary)
+        self.scene, self.parents = split.scene, split.parent_index
+        if self.mask is not None:  # a selected splat's children are selected
+            self.mask = self.mask[self.parents]
+
+    def fit_scale(self) -> float:
+        """Fit pixels per proposal pixel, averaged over the active views."""
+        proposal_pixels = self.config.proposal_width * self.config.proposal_height
+        return float(np.mean([math.sqrt(c.width * c.height / proposal_pixels) for c in self.cameras]))
+
     def prepare(self, content_images: dict[int, np.ndarray] | None) -> None:
         """The seen Gaussians and their fit, how wide they are on screen, the proposal references, and the proposal
         states (resumed or new)."""
@@ -370,9 +399,7 @@ class Stylization:
         wider than the strokes. The strokes' scale is in proposal pixels, the footprint in fit pixels: a proposal
         pixel is sqrt(fit pixels / proposal pixels) fit pixels, averaged over the views."""
         self.footprint = splat_footprint(self.renderer)
-        proposal_pixels = self.config.proposal_width * self.config.proposal_height
-        fit_scale = float(np.mean([math.sqrt(c.width * c.height / proposal_pixels) for c in self.cameras]))
-        note = self.medium.footprint_note(self.footprint, self.entry, self.config, fit_scale)
+        note = self.medium.footprint_note(self.footprint, self.entry, self.config, self.fit_scale())
         if note:
             self.hooks.note(note)
 
@@ -649,7 +676,7 @@ class Stylization:
         log = self.record.entries
         last_loss = log[-1].get("fit_residual", float("nan")) if log else float("nan")  # the fit RMSE, as reported
         self.hooks.report(len(self.stages), 1, 1, "done", last_loss, f"done in {seconds:.1f} s")
-        return StylizeResult(scene, self.selection, log, seconds, int(self.state.seen.numel()))
+        return StylizeResult(scene, self.selection, log, seconds, int(self.state.seen.numel()), self.parents)
 
     # --- Shared by the steps ------------------------------------------------------------------------------
 

@@ -94,6 +94,7 @@ def split_wide_splats(
     stroke_sigma: float,
     max_added: int,
     settings: RasterSettings | None = None,
+    only: np.ndarray | None = None,  # [N] bool: the splats that may be split (a selection); None: any
 ) -> SplitResult:
     """Split the splats the ``cameras`` see wider than ``stroke_sigma`` into children at most that wide (render
     kept; see the module notes).
@@ -117,6 +118,8 @@ def split_wide_splats(
     lengths = np.take_along_axis(axes_px, long_axes, 1)  # [N, 2]
     candidates = (lengths[:, 0] > stroke_sigma) & (drawn >= MIN_DRAWN) & ~scene.invalid_mask()
     candidates &= (np.abs(scene.means).max(1) < 1e30) & (scene.log_scales.max(1) < 60.0)  # children stay finite
+    if only is not None:
+        candidates &= np.asarray(only, bool)
     counts = np.stack([_per_axis(lengths[:, 0], stroke_sigma), _per_axis(lengths[:, 1], stroke_sigma)], 1)
     wide = np.nonzero(candidates)[0]
     floor = _thickness(scene, cameras, view_weights, wide, order[wide])  # [W, 2]
