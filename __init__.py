@@ -5,16 +5,21 @@ Registration only. The engine lives in ``dresg_addon`` (no bpy); ``operators`` a
 thin Blender layer. Heavy modules (torch, the optimizer) are imported when an operator runs.
 """
 
-from . import operators, ui
+# The Blender layer is imported on register, not here: pytest imports this file from a checkout without
+# bpy and, in a folder whose name is not a Python identifier, without a parent package.
 
-_modules = (operators, ui)
+
+def _modules():
+    from . import operators, ui
+
+    return operators, ui
 
 
 def register() -> None:
-    for module in _modules:
+    for module in _modules():
         module.register()
 
 
 def unregister() -> None:
-    for module in reversed(_modules):
+    for module in reversed(_modules()):
         module.unregister()

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from messages import names
 
 from dresg_addon.blender import splat_mesh as sm
 from dresg_addon.scene.camera_io import write_cameras_json
@@ -404,5 +405,6 @@ def test_two_paintings_on_two_selections_and_restore_per_selection(addon, tmp_pa
     np.testing.assert_array_equal(ops.splat_object.read_attribute(obj.data, sm_.SH_DC), original)
 
     settings.selection_group, settings.selection = "nowhere", "GROUP"
-    with pytest.raises(RuntimeError, match="no vertex group or boolean attribute named 'nowhere'"):
+    with pytest.raises(RuntimeError) as error:
         bpy.ops.dresg.stylize()
+    names(error, "'nowhere'")

@@ -6,6 +6,7 @@ import types
 
 import numpy as np
 import pytest
+from messages import names
 from test_up_axis import TURN_Z_TO, blob, floor_and_object, turned
 
 from dresg_addon.blender import splat_mesh as sm
@@ -20,6 +21,13 @@ def _import(path, capfd, **options):
     assert bpy.ops.dresg.import_splats(filepath=str(path), **options) == {"FINISHED"}
     out = capfd.readouterr()
     return bpy.context.active_object, out.out + out.err
+
+
+def _automatic_note(printed: str) -> str:
+    """The one line an import with Axes: Automatic prints about the axis it chose."""
+    lines = [line for line in printed.splitlines() if "Automatic" in line]
+    assert len(lines) == 1, printed
+    return lines[0]
 
 
 def _rotation(obj) -> np.ndarray:
@@ -50,8 +58,7 @@ def test_import_without_cameras_takes_the_up_axis_from_the_splats(addon, tmp_pat
     path = tmp_path / "floor.ply"  # no cameras.json, COLMAP model or poses_bounds.npy beside it
     write_scene(turned(floor_and_object(), TURN_Z_TO["+Y"]), path)
     obj, printed = _import(path, capfd)  # Axes: Automatic, the default
-    assert "Axes: Automatic: +Y up (OpenGL, glTF) from the splats (densest layer across Y" in printed
-    assert "confident)" in printed
+    names(_automatic_note(printed), "+Y", "splats", "confident")  # the axis, what it is from, how sure
     assert obj.dresg_up_axis == "+Y" and not obj.dresg_up_flip  # the panel shows what it chose
     assert obj["dresg_axis_conversion"] == "Y_UP_TO_BLENDER"
     np.testing.assert_allclose(_rotation(obj), sm.up_axis_rotation("+Y"), atol=1e-6)
@@ -59,14 +66,13 @@ def test_import_without_cameras_takes_the_up_axis_from_the_splats(addon, tmp_pat
 
     write_scene(turned(floor_and_object(), TURN_Z_TO["-X"]), path)  # an axis none of the named Axes is
     obj, printed = _import(path, capfd)
-    assert "Axes: Automatic: -X up from the splats" in printed
+    names(_automatic_note(printed), "-X", "splats")
     assert obj.dresg_up_axis == "-X" and obj["dresg_axis_conversion"] == ""
     np.testing.assert_allclose(_rotation(obj) @ [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], atol=1e-6)
 
     write_scene(blob(), path)  # nothing to go by: OpenCV, as before, and it says so
     obj, printed = _import(path, capfd)
-    assert "Axes: Automatic: -Y up (OpenCV / COLMAP), the usual for 3DGS captures: not sure from the splats" in printed
-    assert "check the Up Axis in the object panel" in printed
+    names(_automatic_note(printed), "-Y", "not sure", "Up Axis")  # the fallback, and the setting to check
     assert obj.dresg_up_axis == "-Y" and obj["dresg_axis_conversion"] == "OPENCV_TO_BLENDER"
 
     obj, printed = _import(path, capfd, axis_conversion="Y_UP_TO_BLENDER")  # a named Axes: no guess, no note

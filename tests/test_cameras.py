@@ -259,9 +259,10 @@ def test_colmap_text_and_binary_read_identically(tmp_path):
     images = colmap_images(np.random.default_rng(1))
     write_colmap_text(tmp_path / "text", images)
     write_colmap_binary(tmp_path / "binary", images)
-    with pytest.warns(UserWarning, match="OPENCV distortion is ignored"):
+    with pytest.warns(UserWarning) as warned:
         text = read_colmap(tmp_path / "text")
-    with pytest.warns(UserWarning, match="OPENCV distortion is ignored"):
+    assert_one_line_error(warned[0].message, "OPENCV", "distortion")  # the model and what is left out of it
+    with pytest.warns(UserWarning, match="OPENCV"):
         binary = read_colmap(tmp_path / "binary")
     expected = expected_colmap_cameras(images)
     assert [c.name for c in text] == sorted(c.name for c in text)
@@ -309,16 +310,18 @@ def test_colmap_errors(tmp_path):
     for writer in (write_colmap_text, write_colmap_binary):
         folder = tmp_path / f"fisheye_{writer.__name__}"
         writer(folder, [(1, (1.0, 0, 0, 0), (0, 0, 0), 1, "a.jpg", [])], fisheye)
-        with pytest.raises(CameraError, match="OPENCV_FISHEYE is not supported"):
+        with pytest.raises(CameraError) as info:
             read_colmap(folder)
+        assert_one_line_error(info.value, folder.name, "OPENCV_FISHEYE")
 
     write_colmap_text(tmp_path / "dangling", [(1, (1.0, 0, 0, 0), (0, 0, 0), 99, "a.jpg", [])])
     with pytest.raises(CameraError, match="camera 99"):
         read_colmap(tmp_path / "dangling")
 
     write_colmap_text(tmp_path / "empty", [])
-    with pytest.raises(CameraError, match="contains no cameras"):
+    with pytest.raises(CameraError) as info:
         read_colmap(tmp_path / "empty")
+    assert_one_line_error(info.value, "empty", "no cameras")
 
     write_colmap_text(tmp_path / "nan", [(1, (float("nan"), 0, 0, 0), (0, 0, 0), 1, "a.jpg", [])])
     with pytest.raises(CameraError, match="non-finite"):
@@ -384,8 +387,9 @@ def test_llff_errors(tmp_path):
     with pytest.raises(CameraError, match=r"expected \[N, 17\]"):
         load_cameras(path)
     np.save(path, np.zeros((0, 17)))
-    with pytest.raises(CameraError, match="contains no cameras"):
+    with pytest.raises(CameraError) as info:
         load_cameras(path)
+    assert_one_line_error(info.value, "poses_bounds.npy", "no cameras")
     np.save(path, np.zeros((1, 17)))  # zero rotation
     with pytest.raises(CameraError, match="singular"):
         load_cameras(path)
@@ -401,8 +405,9 @@ def test_load_cameras_dispatch_errors(tmp_path):
         load_cameras(tmp_path / "nowhere.json")
     assert_one_line_error(info.value, "nowhere.json", "no such file")
     (tmp_path / "cams.yaml").write_text("")
-    with pytest.raises(CameraError, match="unknown camera file type"):
+    with pytest.raises(CameraError) as info:
         load_cameras(tmp_path / "cams.yaml")
+    assert_one_line_error(info.value, "cams.yaml")
     (tmp_path / "cameras.json").write_text(json.dumps([GOOD_ENTRY]))
     assert load_cameras(tmp_path)[0].name == "a"
     assert load_cameras(tmp_path, factor=2)[0].width == 5

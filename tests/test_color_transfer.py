@@ -122,7 +122,7 @@ def test_bad_inputs():
     style = torch.rand(3, 5, 5)
     with pytest.raises(CameraError, match="no render pixel"):
         covariance_color_transform(renders, style, render_mask=torch.zeros(2, 4, 4))
-    with pytest.raises(ImageError, match="style image mask keeps no pixel"):
+    with pytest.raises(ImageError, match="mask"):
         covariance_color_transform(renders, style, style_mask=torch.zeros(5, 5))
     with pytest.raises(ValueError, match="mask has shape"):
         covariance_color_transform(renders, style, render_mask=torch.ones(2, 4, 5))

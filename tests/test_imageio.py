@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from messages import names
 
 from dresg_addon.util import imageio
 from dresg_addon.util.errors import ImageError, WriteError
@@ -160,17 +161,18 @@ def test_reads_real_photo_and_painting(shared_data):
 
 
 def test_missing_file(tmp_path):
-    with pytest.raises(ImageError, match=r"nope\.png: no such file"):
+    with pytest.raises(ImageError) as info:
         read_image(tmp_path / "nope.png")
+    names(info, "nope.png")
 
 
 @pytest.mark.parametrize("content", [b"", b"hello, not an image\n"])
 def test_text_or_empty_file_named_png(tmp_path, content):
     path = tmp_path / "fake.png"
     path.write_bytes(content)
-    with pytest.raises(ImageError, match=r"fake\.png: (empty file|not a readable image)") as info:
+    with pytest.raises(ImageError) as info:
         read_image(path)
-    assert "\n" not in str(info.value)
+    names(info, "fake.png")
 
 
 def test_truncated_png(tmp_path, rgb):
@@ -178,9 +180,9 @@ def test_truncated_png(tmp_path, rgb):
     write_image(path, np.random.default_rng(2).random((64, 64, 3)))
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
-    with pytest.raises(ImageError, match=r"t\.png: truncated or corrupt") as info:
+    with pytest.raises(ImageError) as info:
         read_image(path)
-    assert "\n" not in str(info.value)
+    names(info, "t.png")
 
 
 def test_non_finite_exr_is_reported_with_count(tmp_path, rgb):
@@ -194,8 +196,9 @@ def test_non_finite_exr_is_reported_with_count(tmp_path, rgb):
     out = oiio.ImageOutput.create(str(path))  # bypass our writer, which refuses NaN
     assert out.open(str(path), spec) and out.write_image(rgb)
     out.close()
-    with pytest.raises(ImageError, match=r"bad\.exr: 3 non-finite values"):
+    with pytest.raises(ImageError) as info:
         read_image(path)
+    names(info, "bad.exr", "3 non-finite")  # the file and how many values
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
@@ -237,21 +240,25 @@ def test_failed_encoder_leaves_existing_file_intact(tmp_path, rgb, monkeypatch):
             return True
 
     monkeypatch.setattr(oiio.ImageOutput, "create", staticmethod(lambda name: FailingOutput()))
-    with pytest.raises(WriteError, match=r"keep\.png: cannot write: disk full"):
+    with pytest.raises(WriteError) as info:
         write_image(path, rgb * 0.5)
+    names(info, "keep.png", "disk full")  # the file and the system's reason
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["keep.png"]
 
 
 def test_writer_checks_shape_extension_and_bits(tmp_path, rgb):
-    with pytest.raises(ImageError, match=r"x\.bmp: unsupported image extension"):
+    with pytest.raises(ImageError) as info:
         write_image(tmp_path / "x.bmp", rgb)
+    names(info, "x.bmp")
     with pytest.raises(ImageError, match=r"shape \(4, 4, 2\)"):
         write_image(tmp_path / "x.png", np.zeros((4, 4, 2)))
-    with pytest.raises(ImageError, match="cannot store 16-bit"):
+    with pytest.raises(ImageError) as info:
         write_image(tmp_path / "x.jpg", rgb, bits=16)
-    with pytest.raises(ImageError, match="JPEG cannot store alpha"):
+    names(info, "x.jpg", "16")
+    with pytest.raises(ImageError) as info:
         write_image(tmp_path / "x.jpg", np.zeros((4, 4, 4)))
+    names(info, "x.jpg", "alpha")
     assert list(tmp_path.iterdir()) == []
 
 
@@ -371,5 +378,6 @@ def test_a_large_image_reads_reduced_in_bands_and_a_huge_one_is_refused_from_its
     thin = read_rgb(tmp_path / "thin.exr", max_side=10)  # factor 4; the 7 columns give one block of 4
     assert thin.shape == (10, 1, 3) and np.allclose(thin[..., 0], thin[..., 2])
     monkeypatch.setattr(imageio, "MAX_IMAGE_PIXELS", 300 * 450 - 1)
-    with pytest.raises(ImageError, match="declares 450x300 pixels, more than"):
+    with pytest.raises(ImageError) as info:
         read_image(tmp_path / "big.exr")
+    names(info, "big.exr", "450x300")

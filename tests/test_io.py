@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from messages import names
 
 import dresg_addon.scene.io as scene_io
 from dresg_addon.scene.gaussians import SH_C0, GaussianScene
@@ -463,8 +464,7 @@ def test_truncated_and_oversized_data(good_ply):
 def test_missing_properties_are_named(tmp_path):
     cols = graphdeco_columns(random_scene(n=5, degree=0))
     del cols["opacity"], cols["rot_3"]
-    message = error_of(write_test_ply(tmp_path / "m.ply", cols))
-    assert "missing required vertex properties: opacity, rot_3" in message
+    names(error_of(write_test_ply(tmp_path / "m.ply", cols)), "m.ply", "opacity", "rot_3")
 
 
 def test_bad_f_rest_count(tmp_path):
@@ -579,8 +579,9 @@ def test_failed_write_leaves_the_old_file(tmp_path, monkeypatch, good_ply):
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(scene_io, "_write_parts", half_then_fail)
-    with pytest.raises(WriteError, match="good.ply: cannot write: No space left on device"):
+    with pytest.raises(WriteError) as error:
         write_scene(random_scene(n=5), good_ply)
+    names(error, "good.ply", "No space left on device")  # the file and the system's reason
     assert digest(good_ply) == before
     assert os.listdir(good_ply.parent) == ["good.ply"]  # no temporary file left behind
 
@@ -622,11 +623,13 @@ def test_refuses_non_finite_scenes_and_unknown_extensions(tmp_path, good_ply):
     before = digest(good_ply)
     scene = random_scene(n=5)
     scene.quats[2, 0] = np.nan
-    with pytest.raises(SceneFormatError, match="1 splats with non-finite values"):
+    with pytest.raises(SceneFormatError) as error:
         write_scene(scene, good_ply)
+    names(error, "good.ply", "1 splat", "non-finite")
     assert digest(good_ply) == before
-    with pytest.raises(SceneFormatError, match="unknown output extension '.obj'"):
+    with pytest.raises(SceneFormatError) as error:
         write_scene(random_scene(n=5), tmp_path / "x.obj")
+    names(error, ".obj")
 
 
 def test_writing_does_not_modify_the_scene(tmp_path):

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from messages import names
 
 from dresg_addon.method.schedule import (
     RESIDUAL_SCHEDULES,
@@ -108,8 +109,9 @@ def test_fewer_stages_cover_the_same_noise_range():
 
 
 def test_stage_settings_are_checked():
-    with pytest.raises(ConfigError, match="need at least 210 DDIM steps"):
+    with pytest.raises(ConfigError) as error:
         stage_timesteps(21, 10)
+    names(error, "210")  # the DDIM steps 21 stages of 10 updates need
     with pytest.raises(ConfigError):
         stage_timesteps(0, 10)
     with pytest.raises(ConfigError):
@@ -169,5 +171,6 @@ def test_dispatcher():
     for name in RESIDUAL_SCHEDULES:
         values = stage_gammas(name, stages)
         assert all(1.0 <= g <= 2.0 and math.isfinite(g) for g in values)
-    with pytest.raises(ConfigError, match="unknown residual schedule 'cosine'"):
+    with pytest.raises(ConfigError) as error:
         residual_gamma("cosine", 0.5, 1, 20)
+    names(error, "'cosine'")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from messages import names
 
 from dresg_addon.method.views import (
     COVERAGE_REACHED,
@@ -97,8 +98,9 @@ def test_blind_views_are_reported_and_cameras_seeing_nothing_raise():
     result = select_views(w)
     assert result.blind_views == (3, 5)
     assert 3 not in result.views and 5 not in result.views
-    with pytest.raises(CameraError, match="none of the 2 cameras sees any of the 4 Gaussians"):
+    with pytest.raises(CameraError) as error:
         select_views(np.zeros((2, 4)))
+    names(error, "2 cameras", "4 Gaussians")
     with pytest.raises(CameraError):
         select_views(np.full((2, 4), 5e-5))
 

@@ -248,7 +248,13 @@ def run(args) -> int:
             views = [int(v) for v in args.views.split(",")]
         except ValueError:
             raise ConfigError(f"--views must be comma-separated camera indices (got {args.views!r})") from None
-    mask = selection_mask(selection_from_args(args, scene), len(scene), config)  # checked before any note
+    selection = selection_from_args(args, scene)
+    try:
+        mask = selection_mask(selection, len(scene), config)  # checked before any note
+    except ConfigError as error:
+        if not args.mask:
+            raise
+        raise ConfigError(f"--mask {args.mask}: {error}") from None  # which file the selection came from
     out = Path(args.out)
     log_path = Path(args.log) if args.log else out.with_suffix(".log.jsonl")
     checkpoint_dir = Path(args.checkpoint_dir) if args.checkpoint_dir else out.with_suffix(".checkpoint")
