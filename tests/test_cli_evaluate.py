@@ -87,10 +87,11 @@ def test_evaluate_end_to_end(files, capsys):
         assert view["sw_patches_half"] > 0 and view["sw_patches_quarter"] > 0
         assert math.isfinite(view["texture_kept"]) and -1 <= view["texture_kept"] <= 1
         assert math.isfinite(view["shapes"]) and 0 < view["shapes"] <= 1
+        assert -1 <= view["forms"] <= 1 and all(view[key] >= 0 for key in ("marks_fine", "marks_mid", "marks_coarse"))
         assert view["clip_s"] is None and view["dino_c"] is None
         assert view["alpha_coverage"] > 0.2
     mean = report["mean"]
-    for key in ("ssim", "texture_kept", "shapes"):
+    for key in ("ssim", "texture_kept", "shapes", "forms", "marks_mid"):
         assert mean[key] == pytest.approx(np.mean([v[key] for v in report["per_view"]]))
     assert mean["clip_s"] is None
     for label in ("stylized", "base"):
@@ -107,7 +108,9 @@ def test_evaluate_end_to_end(files, capsys):
     assert report["efficiency"]["splats"] == 1500
     assert report["settings"]["depth_tolerance"] == metrics.DEPTH_TOLERANCE
     assert report["settings"]["style_size"] == [45, 32]  # 56x40 with its shorter side matched to 32
-    assert "texture kept" in table.splitlines()[0] and "shapes" in table.splitlines()[0]
+    assert report["settings"]["stroke_size"] == 1.5  # the standard preset's
+    for label in ("texture kept", "shapes", "forms", "marks fine", "coarse"):
+        assert label in table.splitlines()[0]
     assert "mean" in table and "short-term (gap 1)" in table and "FPS" in table and "stylize: 5.5 s" in table
 
 
@@ -119,7 +122,8 @@ def test_evaluate_base_against_itself(files, capsys):
         assert view["ssim"] == pytest.approx(1.0, abs=1e-6)
         assert view["structure"] == pytest.approx(1.0, abs=1e-6)
         assert view["texture_kept"] == pytest.approx(1.0, abs=1e-5)
-        assert view["shapes"] == pytest.approx(1.0, abs=1e-5)
+        assert view["shapes"] == pytest.approx(1.0, abs=1e-5) and view["forms"] == pytest.approx(1.0, abs=1e-5)
+        assert [view[key] for key in ("marks_fine", "marks_mid", "marks_coarse")] == pytest.approx([0, 0, 0], abs=1e-6)
     assert report["consistency"]["stylized"] == report["consistency"]["base"]
 
 
@@ -137,6 +141,7 @@ def test_evaluate_camera_file_order_and_empty_views(files, capsys, tmp_path):
     empty = report["per_view"][1]
     assert empty["alpha_coverage"] == 0.0 and empty["ssim"] == pytest.approx(1.0)
     assert empty["texture_kept"] == 0.0 and empty["shapes"] == pytest.approx(1.0)  # both flat: nothing to keep
+    assert empty["forms"] == pytest.approx(1.0) and empty["marks_fine"] == empty["marks_coarse"] == 0.0
     short = report["consistency"]["stylized"]["short_term"]
     assert [p["coverage"] for p in short["pairs"]] == [0.0, 0.0] and short["rmse"] is None
     assert "stylized -" in table

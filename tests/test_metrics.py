@@ -266,6 +266,124 @@ def test_texture_kept_leaves_out_a_band_along_the_silhouette():
 
 
 # ----------------------------------------------------------------------------------------------------
+# Mark contrast and forms
+
+
+def painting_image(h=48, w=64, seed=5) -> torch.Tensor:  # [3, H, W] float64: colour marks at every scale
+    g = torch.Generator().manual_seed(seed)
+    layers = [
+        torch.nn.functional.interpolate(torch.rand(1, 3, h // k, w // k, generator=g, dtype=F64), size=(h, w))[0]
+        for k in (8, 4, 2, 1)  # blocks of 8, 4, 2 and 1 px: edges and flats, like strokes
+    ]
+    return sum(layers) / len(layers)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_mark_contrast_is_1_for_the_painting_and_0_for_the_base_itself(dtype):
+    painting, base = painting_image().to(dtype), textured_base().to(dtype)
+    flat = torch.full_like(painting, 0.5)
+    values = metrics.mark_contrast(painting, flat, painting)  # by construction: the painting's own bands
+    assert values.shape == (3,) and values.dtype == dtype
+    assert values.tolist() == pytest.approx([1.0, 1.0, 1.0], abs=1e-5)
+    # A view of the painting at Stroke Size 1.5: a crop of it, measured against the whole.
+    large = torch.nn.functional.interpolate(painting_image(24, 32)[None], size=(72, 96))[0].to(dtype)
+    crop = large[:, 12:60, 16:80]
+    assert metrics.mark_contrast(crop, flat, large).tolist() == pytest.approx([1.0, 1.0, 1.0], abs=0.2)
+    # A blurred copy: the marks gone, most of all the fine ones.
+    blurred = metrics.mark_contrast(blur(painting, 8.0), flat, painting)
+    assert float(blurred[0]) < 0.02 and float(blurred.max()) < 0.15
+    # The base itself, or its texture at another brightness and contrast: none of the painting's marks.
+    assert metrics.mark_contrast(base, base, painting).tolist() == [0.0, 0.0, 0.0]
+    assert metrics.mark_contrast(0.2 + 0.5 * base, base, painting).abs().max() < 1e-5
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_mark_contrast_leaves_the_capture_s_texture_out(masked):
+    painting, base = painting_image(), textured_base()
+    mask = blob_mask(48, 64) if masked else None
+    marks = painting - painting.mean()
+    for stylized in (base + marks, 0.5 * base + marks):  # the capture's texture left in, at any contrast
+        assert metrics.mark_contrast(stylized, base, painting, mask=mask).tolist() == pytest.approx([1, 1, 1], abs=0.1)
+    assert metrics.mark_contrast(base, base, painting, mask=mask).tolist() == [0.0, 0.0, 0.0]
+    half = metrics.mark_contrast(base + 0.5 * marks, base, painting, mask=mask)
+    assert half.tolist() == pytest.approx([0.5, 0.5, 0.5], abs=0.05)  # a linear measure: half the marks, half
+
+
+def test_mark_contrast_on_a_black_background_counts_the_covered_pixels_alone():
+    painting, base, mask = painting_image(), textured_base(), blob_mask(48, 64)
+    stylized = torch.where(mask, painting, 0.0)  # the painting inside the silhouette, black around it
+    values = metrics.mark_contrast(stylized, torch.where(mask, base, 0.0), painting, mask=mask)
+    assert values.tolist() == pytest.approx([1.0, 1.0, 1.0], abs=0.1)  # the silhouette's edge makes no marks
+    # A mask of alpha values thresholds at one half; a batch is its views one by one.
+    assert torch.allclose(metrics.mark_contrast(stylized, base, painting, mask=0.8 * mask), values, atol=1e-6)
+    both = metrics.mark_contrast(torch.stack([stylized, base]), torch.stack([base, base]), painting, mask=mask)
+    assert both.shape == (2, 3) and torch.allclose(both[0], values, atol=1e-6) and both[1].abs().max() == 0.0
+
+
+def test_mark_contrast_extremes_are_defined():
+    painting, base = painting_image(), textured_base()
+    grey, black = torch.full_like(base, 0.5), torch.zeros_like(base)
+    cases = [(grey, grey, painting), (black, black, painting), (painting, base, grey), (grey, base, painting)]
+    for image, reference, style in cases:
+        values = metrics.mark_contrast(image, reference, style)
+        assert bool(values.isfinite().all()) and float(values.min()) >= 0.0
+    assert metrics.mark_contrast(painting, grey, grey).tolist() == [0.0, 0.0, 0.0]  # a flat painting has no marks
+    assert metrics.mark_contrast(grey, grey, painting).tolist() == [0.0, 0.0, 0.0]  # a flat render none either
+    # An empty mask covers every pixel; a mask with nothing left after the erosion gives 0.
+    empty = torch.zeros(48, 64, dtype=torch.bool)
+    assert torch.equal(
+        metrics.mark_contrast(painting, grey, painting, mask=empty), metrics.mark_contrast(painting, grey, painting)
+    )
+    thin = torch.zeros(48, 64, dtype=torch.bool)
+    thin[10:40, 20:25] = True
+    assert metrics.mark_contrast(painting, grey, painting, mask=thin).tolist() == [0.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match="erode"):
+        metrics.mark_contrast(painting, grey, painting, erode=-1)
+    with pytest.raises(ValueError, match="painting"):
+        metrics.mark_contrast(painting, grey, painting[0])
+
+
+def forms_image(h=48, w=64) -> torch.Tensor:  # [3, H, W] float64: forms of ~10 px with strong edges, and texture
+    y, x = torch.meshgrid(torch.arange(h, dtype=F64), torch.arange(w, dtype=F64), indexing="ij")
+    forms = 0.5 + 0.3 * torch.sin(2 * math.pi * x / 20) * torch.cos(2 * math.pi * y / 24)
+    return (forms + textured_base(h, w) - 0.4).clamp(0, 1)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_forms_keep_a_brightness_or_contrast_change_and_drop_for_other_forms(masked):
+    base = forms_image()
+    mask = blob_mask(48, 64) if masked else None
+    for image in (base, 0.1 + 0.6 * base, 1.5 * base - 0.3):
+        assert float(metrics.forms_similarity(image, base, mask=mask)) == pytest.approx(1.0, abs=1e-6)
+    assert float(metrics.forms_similarity(base.float(), base.float(), mask=mask)) == pytest.approx(1.0, abs=1e-5)
+    # The palette's brightness lowers shapes (full SSIM), not forms.
+    dark = 0.3 * base
+    assert float(metrics.shape_similarity(dark, base, mask=mask)) < 0.9
+    # Other forms: the scene moved, or its light inverted.
+    moved = torch.roll(base, shifts=(9, 17), dims=(1, 2))
+    assert float(metrics.forms_similarity(moved, base, mask=mask)) < 0.8
+    assert float(metrics.forms_similarity(1.0 - base, base, mask=mask)) < 0.0
+    # Fine marks over the forms cost little; a batch is its pairs one by one.
+    marked = base + 0.1 * (painting_image(8, 8) - 0.5).repeat(1, 6, 8)
+    assert float(metrics.forms_similarity(marked, base, mask=mask)) > 0.8
+    pairs = torch.stack([marked, moved]), torch.stack([base, base])
+    single = torch.stack([metrics.forms_similarity(a, b, mask=mask) for a, b in zip(*pairs)])
+    assert torch.allclose(metrics.forms_similarity(*pairs, mask=mask), single, atol=1e-6)
+
+
+def test_forms_of_flat_images_and_empty_masks_are_defined():
+    base = forms_image()
+    grey, black = torch.full_like(base, 0.5), torch.zeros_like(base)
+    for a, b in ((grey, base), (base, grey), (grey, grey), (black, black), (grey, black)):
+        value = float(metrics.forms_similarity(a, b))
+        assert math.isfinite(value) and -1.0 <= value <= 1.0
+    assert float(metrics.forms_similarity(grey, black)) == pytest.approx(1.0)  # no form in either
+    empty = torch.zeros(48, 64, dtype=torch.bool)
+    moved = torch.roll(base, shifts=(9, 17), dims=(1, 2))
+    assert float(metrics.forms_similarity(moved, base, mask=empty)) == float(metrics.forms_similarity(moved, base))
+
+
+# ----------------------------------------------------------------------------------------------------
 # Coverage masks (objects on a black background)
 
 

@@ -217,7 +217,7 @@ def test_report_command_writes_four_sections_and_plots(tmp_path):
     assert "a single Gaussian covers the view" in text
     assert len(list((out / "logs").glob("*.jsonl"))) == 4  # every run has its own settings
     assert "novel views between them" in text
-    assert "| SSIM | GS | texture kept | kept at 2x | shapes | short RMSE |" in text
+    assert "| SSIM | GS | texture kept | kept at 2x | shapes | forms | marks fine | mid | coarse | short RMSE |" in text
     data = json.loads((out / "report.json").read_text())
     assert [r["label"] for r in data["runs"]] == ["preview", "paper", "stages 1", "stages 2"]
     assert data["convergence"]["label"] == "paper" and data["convergence"]["steps"]  # most fit steps (preview: no post)

@@ -12,7 +12,12 @@ base render covers:
 - content: SSIM and gradient structure to the base render from the same camera; ``texture_kept``, the
   correlation of the luminance high-pass (sigma 2 px) with the base render's, 4 px inside the silhouette (1:
   the scene's own fine texture is all still there, about 0: replaced, e.g. by the painting's marks), and
-  ``shapes``, SSIM of the luminance blurred by a Gaussian of sigma 3 px (1: the same forms);
+  ``shapes``, SSIM of the luminance blurred by a Gaussian of sigma 3 px (1: the same forms), and ``forms``, SSIM's
+  structure term alone on it (1: the same forms, whatever the palette's brightness and contrast);
+- mark contrast ``marks_fine``, ``marks_mid``, ``marks_coarse``: the luminance band-pass (differences of Gaussians at
+  sigma 0.6/1.2, 1.2/2.4 and 2.4/4.8 px) of the 2x render area-downsampled to the cameras' size, less what the base
+  render's same band explains, 4 px inside the silhouette, over the painting's own at ``--stroke-size`` (1: marks
+  as strong as the painting's, about 0: none);
 - optional CLIP-S (``--clip``) and DINO-C (``--dino``) with local transformers weights.
 
 Along the path: the stylized render of view i warped into view i + gap with the stylized scene's
@@ -46,8 +51,8 @@ from ._common import (
 NAME = "evaluate"
 HELP = (
     "Measure a stylized scene against its base scene and style image, as the report and the quality benchmark "
-    "do: style distance (patches at three scales, colours), content similarity, texture kept, shapes, cross-view "
-    "consistency, render speed (and CLIP-S / DINO-C with local weights)."
+    "do: style distance (patches at three scales, colours), content similarity, texture kept, shapes, forms, mark "
+    "contrast, cross-view consistency, render speed (and CLIP-S / DINO-C with local weights)."
 )
 
 DEFAULT_ORBIT = 8
@@ -97,6 +102,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--patch-samples", type=int, default=16384, metavar="N", help="patches drawn per image (fixed positions)"
     )
     parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the projections and patch positions")
+    parser.add_argument(
+        "--stroke-size",
+        type=float,
+        metavar="S",
+        help="the run's Stroke Size: mark contrast compares with the painting resampled to the cameras' size x S "
+        "(default: the standard preset's, 1.5)",
+    )
     # Defaults come from dresg_addon.evaluation.metrics at run time: importing it (torch) here would slow every command.
     parser.add_argument(
         "--depth-tolerance",
@@ -121,6 +133,8 @@ def _check_options(args: argparse.Namespace) -> tuple[float, float]:
 
     tolerance = DEPTH_TOLERANCE if args.depth_tolerance is None else args.depth_tolerance
     threshold = ALPHA_THRESHOLD if args.alpha_threshold is None else args.alpha_threshold
+    if args.stroke_size is not None and not (math.isfinite(args.stroke_size) and args.stroke_size > 0.0):
+        raise ConfigError(f"--stroke-size {args.stroke_size} must be a positive number")
     if not (math.isfinite(args.near) and args.near >= 0.0):
         raise ConfigError(f"--near {args.near} must be a finite number >= 0")
     for option, value, low in (
@@ -150,11 +164,13 @@ def evaluate(args: argparse.Namespace) -> dict:
     """Everything the command measures, as a JSON-ready dict (no NaN: missing values are None)."""
     from ..evaluation import metrics
     from ..evaluation.views import base_views, check_camera_sizes, evaluate_views, path_consistency
+    from ..method.config import DEFAULT_PRESET, PRESETS
     from ..raster import RasterSettings
     from ..scene.camera import view_name
     from ..util.imageio import STYLE_MAX_SIDE, read_rgb, to_tensor
 
     tolerance, threshold = _check_options(args)
+    stroke_size = PRESETS[DEFAULT_PRESET].stroke_size if args.stroke_size is None else args.stroke_size
     background = parse_background(args.background)
     device = parse_device(args.device)
     cameras = read_cameras(args)
@@ -191,6 +207,7 @@ def evaluate(args: argparse.Namespace) -> dict:
         patch_samples=args.patch_samples,
         depth_tolerance=tolerance,
         alpha_threshold=threshold,
+        stroke_size=stroke_size,
     )
     n = len(cameras)
     extra = {key: [None] * n for key in EXTRA_KEYS}
@@ -238,6 +255,7 @@ def evaluate(args: argparse.Namespace) -> dict:
             "depth_tolerance": tolerance,
             "alpha_threshold": threshold,
             "style_size": list(measured.style_size),
+            "stroke_size": stroke_size,
         },
         # The metrics' means as evaluate_views takes them (the quality bench's numbers), then the extras'.
         "mean": {**measured.mean, **{key: _mean(values) for key, values in extra.items()}},
@@ -267,6 +285,10 @@ def format_report(report: dict) -> str:
         ("texture kept", "texture_kept"),
         ("kept at 2x", "texture_kept_2x"),
         ("shapes", "shapes"),
+        ("forms", "forms"),
+        ("marks fine", "marks_fine"),
+        ("mid", "marks_mid"),
+        ("coarse", "marks_coarse"),
         ("CLIP-S", "clip_s"),
         ("DINO-C", "dino_c"),
         ("alpha", "alpha_coverage"),
@@ -284,13 +306,16 @@ def format_report(report: dict) -> str:
     lines.append(row_of("mean", [report["mean"][key] for _, key in columns]))
     lines.append(
         "SW patch, 1/2, 1/4: 7x7 patch sliced-Wasserstein distance to the painting at the cameras' size, half and a "
-        "quarter; SW col: the same on colours; SSIM, GS (gradient structure), shapes (SSIM of the forms, sigma 3 px) "
-        "to the base render; texture kept: correlation of the fine texture (sigma 2 px) with the base render's; "
-        "all on the pixels the base render covers, as dresg report and the quality benchmark measure them"
+        "quarter; SW col: the same on colours; SSIM, GS (gradient structure), shapes (SSIM of the forms, sigma 3 px), "
+        "forms (its structure term alone) to the base render; texture kept: correlation of the fine texture (sigma "
+        "2 px) with the base render's; marks fine, mid, coarse: mark contrast, the render's own band-pass (sigma "
+        "0.6/1.2, 1.2/2.4, 2.4/4.8 px) less the base render's, over the painting's at Stroke Size "
+        f"{report['settings']['stroke_size']:g}; all on the pixels the base render covers, as dresg report and the "
+        "quality benchmark measure them"
     )
     lines.append(
         "lower is better: SW patch, 1/2, 1/4, SW col, texture kept (less of the base's fine texture); "
-        "higher is better: SSIM, GS, shapes, CLIP-S, DINO-C"
+        "higher is better: SSIM, GS, shapes, forms, CLIP-S, DINO-C; near 1 is best: marks (the painting's strength)"
     )
     lines.append("consistency, masked RMSE of the warped render (lower is better; coverage = valid pixels):")
     for term in ("short_term", "long_term"):

@@ -13,6 +13,8 @@ metric                                   better     compares
 :func:`gradient_structure_similarity`    higher     stylized and base render from the same camera (mask)
 :func:`texture_kept`                     lower      fine texture of the stylized and base render (mask)
 :func:`shape_similarity`                 higher     blurred forms of the stylized and base render (mask)
+:func:`forms_similarity`                 higher     blurred forms' structure alone, stylized and base render (mask)
+:func:`mark_contrast`                    near 1     the render's own marks, three bands, against the painting's (mask)
 :func:`consistency_rmse`                 lower      a render warped exactly into a later view, and that view
 :func:`measure_render`                   higher FPS render speed and peak memory of a scene
 :func:`read_stylize_log`                 lower      optimisation time and peak memory from the stylizer's log
@@ -42,7 +44,7 @@ import torch
 import torch.nn.functional as F
 
 from ..method.color_transfer import luminance
-from ..method.losses import _blur, gaussian_window, ssim_map
+from ..method.losses import SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, _blur, gaussian_window, ssim_map
 from ..method.style_distance import (
     ALPHA_THRESHOLD,
     empirical_quantiles,
@@ -58,6 +60,8 @@ from ..util.machine import peak_rss_mb
 
 GRADIENT_FLOOR = 1e-3  # the gradient magnitude (per pixel, [0, 1] images) below which an image is flat
 TEXTURE_FLOOR = 1e-4  # the RMS luminance high-pass ([0, 1] images) at or below which an image has no texture
+# Mark contrast's luminance bands: differences of Gaussians of these sigmas (px of the fit size), fine to coarse.
+MARK_BANDS = (("marks_fine", 0.6, 1.2), ("marks_mid", 1.2, 2.4), ("marks_coarse", 2.4, 4.8))
 
 # The style distances are the method's own (it stops its stages on them); they are metrics here too.
 __all__ = [
@@ -68,9 +72,12 @@ __all__ = [
     "StylizeLogSummary",
     "consistency_rmse",
     "empirical_quantiles",
+    "forms_similarity",
     "gaussian_blur",
     "gradient_structure_similarity",
     "luminance",
+    "mark_band_scales",
+    "mark_contrast",
     "masked_rmse",
     "measure_render",
     "peak_rss_mb",
@@ -217,6 +224,22 @@ def gradient_structure_similarity(
     return out if a.ndim == 4 else out[0]
 
 
+def _check_erode(erode, name: str) -> None:
+    if isinstance(erode, bool) or not isinstance(erode, int) or erode < 0:
+        raise ValueError(f"{name}: erode must be an integer >= 0 pixels, got {erode!r}")
+
+
+def _eroded(covered: torch.Tensor | None, erode: int, like: torch.Tensor) -> torch.Tensor:  # -> [B, H, W] bool
+    """The pixels every pixel within ``erode`` px of which is covered (all of ``like``'s [B, H, W] without a mask)."""
+    if covered is None:
+        return torch.ones(like.shape[0], *like.shape[-2:], dtype=torch.bool, device=like.device)
+    if erode == 0:
+        return covered
+    # max-pooling pads with -inf: pixels off the image are not uncovered
+    uncovered = (~covered)[:, None].to(like.dtype)
+    return F.max_pool2d(uncovered, 2 * erode + 1, stride=1, padding=erode)[:, 0] == 0
+
+
 def _covered_luminance(ab: torch.Tensor, covered: torch.Tensor | None) -> torch.Tensor:  # -> [B, 1, H, W]
     """The :func:`luminance` of each image, 0 outside ``covered`` (as on a black background)."""
     luma = luminance(ab)
@@ -255,20 +278,12 @@ def texture_kept(
     0.0
     """
     ab, bb = _pair_batch(image, base, "texture_kept")
-    if isinstance(erode, bool) or not isinstance(erode, int) or erode < 0:
-        raise ValueError(f"texture_kept: erode must be an integer >= 0 pixels, got {erode!r}")
+    _check_erode(erode, "texture_kept")
     covered = _pair_mask(mask, ab, "texture_kept")
     luma_a, luma_b = _covered_luminance(ab, covered), _covered_luminance(bb, covered)
     high_a = (luma_a - gaussian_blur(luma_a, sigma))[:, 0]  # [B, H, W]
     high_b = (luma_b - gaussian_blur(luma_b, sigma))[:, 0]
-    if covered is None:
-        counted = torch.ones_like(high_a, dtype=torch.bool)
-    elif erode == 0:
-        counted = covered
-    else:  # max-pooling pads with -inf: pixels off the image are not uncovered
-        uncovered = (~covered)[:, None].to(high_a.dtype)
-        counted = F.max_pool2d(uncovered, 2 * erode + 1, stride=1, padding=erode)[:, 0] == 0
-    weight = counted.to(high_a.dtype)
+    weight = _eroded(covered, erode, high_a).to(high_a.dtype)
     count = weight.flatten(1).sum(1).clamp_min(1.0)[:, None, None]  # [B, 1, 1]
     da = (high_a - (high_a * weight).flatten(1).sum(1)[:, None, None] / count) * weight
     db = (high_b - (high_b * weight).flatten(1).sum(1)[:, None, None] / count) * weight
@@ -307,6 +322,134 @@ def shape_similarity(
     forms_a = gaussian_blur(_covered_luminance(ab, covered), sigma).expand(-1, 3, -1, -1)
     forms_b = gaussian_blur(_covered_luminance(bb, covered), sigma).expand(-1, 3, -1, -1)
     out = ssim_per_image(forms_a, forms_b, mask=covered)
+    return out if image.ndim == 4 else out[0]
+
+
+def _covered_blur(x: torch.Tensor, weight: torch.Tensor | None, sigma: float) -> torch.Tensor:  # [B, C, H, W]
+    """:func:`gaussian_blur` over the covered pixels alone, blur(x w) / blur(w) (a normalised convolution): the
+    background and the silhouette's edge do not reach the covered pixels; 0 where nothing covered is near."""
+    if weight is None:
+        return gaussian_blur(x, sigma)
+    den = gaussian_blur(weight, sigma)
+    return torch.where(den > 1e-6, gaussian_blur(x * weight, sigma) / den.clamp_min(1e-6), 0.0)
+
+
+def luminance_bands(
+    luma: torch.Tensor,  # [B, 1, H, W]
+    weight: torch.Tensor | None = None,  # [B, 1, H, W]: 1 covered, 0 not; None: every pixel
+    bands=MARK_BANDS,  # (name, inner sigma, outer sigma) px
+) -> torch.Tensor:  # [B, len(bands), H, W]
+    """Band-passes of the luminance: differences of Gaussians, blur(Y, inner) - blur(Y, outer), each blur over the
+    covered pixels alone (:func:`_covered_blur`)."""
+    sigmas = sorted({sigma for _, inner, outer in bands for sigma in (inner, outer)})
+    blurred = {sigma: _covered_blur(luma, weight, sigma) for sigma in sigmas}
+    return torch.cat([blurred[inner] - blurred[outer] for _, inner, outer in bands], 1)
+
+
+def mark_band_scales(painting: torch.Tensor) -> torch.Tensor:  # [3, h, w] -> [len(MARK_BANDS)] float64
+    """The standard deviation of each :data:`MARK_BANDS` band of the painting's luminance, over the whole painting
+    (given at the view's scale: resampled to the view's size x Stroke Size)."""
+    if painting.ndim != 3 or painting.shape[0] != 3:
+        raise ValueError(f"mark_band_scales: the painting must be [3, H, W], got {tuple(painting.shape)}")
+    bands = luminance_bands(luminance(painting[None].to(torch.float64)))[0]
+    return (bands - bands.mean((1, 2), keepdim=True)).square().mean((1, 2)).sqrt()
+
+
+def mark_contrast(
+    image: torch.Tensor,  # [3, H, W] or [B, 3, H, W]: the stylized render
+    base: torch.Tensor,  # same shape: the unstylized render from the same camera
+    painting: torch.Tensor,  # [3, h, w]: the painting at the view's scale (the view's size x Stroke Size)
+    mask=None,  # [H, W] or [B, H, W]: bool, or alpha
+    erode: int = 4,
+) -> torch.Tensor:  # [3] or [B, 3]: fine, mid, coarse
+    """The render's own marks against the painting's, per luminance band of :data:`MARK_BANDS`: 1 as strong as the
+    painting's, about 0 none.
+
+    In each band (:func:`luminance_bands`, a difference of Gaussians at sigma 0.6/1.2, 1.2/2.4 and 2.4/4.8 px) the
+    image's band a is regressed on the base's band b over the counted pixels P, and what the capture's texture
+    explains taken out: r = (a - mean_P a) - beta (b - mean_P b), beta = cov_P(a, b) / var_P(b) (0 for a flat b).
+    The value is sqrt(mean_P r^2) over the painting's own band standard deviation (:func:`mark_band_scales`): the
+    painting itself over a flat base gives 1, a blurred copy of it about 0, the base itself (or any contrast of its
+    texture) 0, and the base plus the painting's band about 1.
+
+    With ``mask`` (bool, or alpha > ``ALPHA_THRESHOLD``; an empty one counts as covering every pixel) the blurs run
+    over the covered pixels alone, so the background and the silhouette's edge do not make marks, and a pixel counts
+    only if every pixel within ``erode`` px is covered (as in :func:`texture_kept`). Degenerate cases give 0.0,
+    never NaN: a flat painting (a band's deviation at most :data:`TEXTURE_FLOOR`), no counted pixel.
+
+    >>> painting = torch.rand(3, 24, 32)
+    >>> [round(v, 6) for v in mark_contrast(painting, torch.full_like(painting, 0.5), painting).tolist()]
+    [1.0, 1.0, 1.0]
+    >>> mark_contrast(painting, painting, painting).tolist()
+    [0.0, 0.0, 0.0]
+    """
+    ab, bb = _pair_batch(image, base, "mark_contrast")
+    _check_erode(erode, "mark_contrast")
+    covered = _pair_mask(mask, ab, "mark_contrast")
+    scales = mark_band_scales(painting).to(ab.device)  # [n]
+    weight = None if covered is None else covered[:, None].to(torch.float64)
+    band_a = luminance_bands(luminance(ab.to(torch.float64)), weight)  # [B, n, H, W]
+    band_b = luminance_bands(luminance(bb.to(torch.float64)), weight)
+    counted = _eroded(covered, erode, ab)[:, None].to(torch.float64)  # [B, 1, H, W]
+    count = counted.sum((2, 3), keepdim=True).clamp_min(1.0)
+
+    def centred(band: torch.Tensor) -> torch.Tensor:
+        return (band - (band * counted).sum((2, 3), keepdim=True) / count) * counted
+
+    da, db = centred(band_a), centred(band_b)
+    var_b = (db * db).sum((2, 3), keepdim=True) / count
+    cov = (da * db).sum((2, 3), keepdim=True) / count
+    beta = torch.where(var_b > TEXTURE_FLOOR**2, cov / var_b.clamp_min(TEXTURE_FLOOR**2), 0.0)
+    spread = ((da - beta * db).square().sum((2, 3)) / count[:, :, 0, 0]).sqrt()  # [B, n]
+    out = torch.where(scales > TEXTURE_FLOOR, spread / scales.clamp_min(TEXTURE_FLOOR), 0.0).to(ab.dtype)
+    return out if image.ndim == 4 else out[0]
+
+
+def forms_similarity(
+    image: torch.Tensor,  # [3, H, W] or [B, 3, H, W]: the stylized render
+    base: torch.Tensor,  # same shape: the unstylized render from the same camera
+    mask=None,  # [H, W] or [B, H, W]: bool, or alpha
+    sigma: float = 3.0,
+) -> torch.Tensor:  # scalar or [B]
+    """Forms: SSIM's structure term alone on the blurred luminance, in [-1, 1]; 1 for the same forms at any
+    brightness and contrast.
+
+    With f = :func:`gaussian_blur` (Y, ``sigma``) of each :func:`luminance`, the local means, deviations and
+    covariance over SSIM's 11 x 11 Gaussian window (sigma 1.5) give s = (cov + C3) / (sd_image sd_base + C3),
+    C3 = C2 / 2 = 0.03^2 / 2, averaged over the covered pixels: changed or missing forms lower it, a palette that
+    is brighter, darker or of other contrast than the capture does not (SSIM's luminance and contrast terms are
+    left out: :func:`shape_similarity` keeps them). Marks on a flat part of the base (sd_base near 0) cost little.
+
+    With ``mask`` (bool, or alpha > ``ALPHA_THRESHOLD``; an empty one counts as covering every pixel) the blur and
+    the window run over the covered pixels alone (normalised convolutions), so the silhouette is no shared form.
+    Flat images give 1 (both) or about C3 / (sd sd + C3); never NaN.
+
+    >>> x = torch.rand(3, 24, 24)
+    >>> round(float(forms_similarity(0.2 + 0.5 * x, x)), 6)
+    1.0
+    """
+    ab, bb = _pair_batch(image, base, "forms_similarity")
+    covered = _pair_mask(mask, ab, "forms_similarity")
+    weight = (
+        torch.ones(ab.shape[0], 1, *ab.shape[2:], dtype=torch.float64, device=ab.device)
+        if covered is None
+        else covered[:, None].to(torch.float64)
+    )
+    forms_a = _covered_blur(luminance(ab.to(torch.float64)), weight, sigma)
+    forms_b = _covered_blur(luminance(bb.to(torch.float64)), weight, sigma)
+    window = gaussian_window(SSIM_WINDOW, SSIM_SIGMA, torch.float64, ab.device)
+    den = _blur(weight, window).clamp_min(1e-6)
+
+    def local(x: torch.Tensor) -> torch.Tensor:  # the window's weighted mean over the covered pixels
+        return _blur(x * weight, window) / den
+
+    mu_a, mu_b = local(forms_a), local(forms_b)
+    var_a = (local(forms_a * forms_a) - mu_a**2).clamp_min(0.0)
+    var_b = (local(forms_b * forms_b) - mu_b**2).clamp_min(0.0)
+    cov = local(forms_a * forms_b) - mu_a * mu_b
+    c3 = SSIM_C2 / 2.0
+    structure = ((cov + c3) / (torch.sqrt(var_a * var_b) + c3)).clamp(-1.0, 1.0)
+    out = ((structure * weight).sum((1, 2, 3)) / weight.sum((1, 2, 3))).to(ab.dtype)
     return out if image.ndim == 4 else out[0]
 
 

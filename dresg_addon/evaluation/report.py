@@ -145,8 +145,9 @@ def plot_work_precision(axes, rows: list[dict], base: dict) -> None:
 def work_precision_table(rows: list[dict], base: dict) -> str:
     lines = [
         "| run | stages x updates | fit / post steps | proposal | geometry | active views | time (s) "
-        "| SW patch | ½ | ¼ | SW colour | SSIM | GS | texture kept | kept at 2x | shapes | short RMSE | long RMSE |",
-        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| SW patch | ½ | ¼ | SW colour | SSIM | GS | texture kept | kept at 2x | shapes | forms | marks fine | mid "
+        "| coarse | short RMSE | long RMSE |",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
 
     def metrics(r: dict) -> str:
@@ -154,6 +155,8 @@ def work_precision_table(rows: list[dict], base: dict) -> str:
             f"| {_fmt(r['sw_patches'])} | {_fmt(r['sw_patches_half'])} | {_fmt(r['sw_patches_quarter'])} "
             f"| {_fmt(r['sw_colors'])} | {_fmt(r['ssim'], 3)} | {_fmt(r['structure'], 3)} "
             f"| {_fmt(r['texture_kept'], 3)} | {_fmt(r.get('texture_kept_2x'), 3)} | {_fmt(r['shapes'], 3)} "
+            f"| {_fmt(r.get('forms'), 3)} | {_fmt(r.get('marks_fine'), 2)} | {_fmt(r.get('marks_mid'), 2)} "
+            f"| {_fmt(r.get('marks_coarse'), 2)} "
             f"| {_fmt(r['short_rmse'])} "
             f"| {_fmt(r['long_rmse'])} |"
         )
@@ -352,7 +355,11 @@ METRICS_TEXT = (
     "luminance high-pass (sigma 2 px) with the unstylized render's, 4 px inside the silhouette (1: the scene's own "
     "fine texture all still there; lower: more of the painting's); kept at 2x: the same on the renders at twice the size, 8 px "
     "inside (detail finer than the fit size, a capture's sub-pixel texture); shapes: SSIM of the luminance blurred by a "
-    "Gaussian of sigma 3 px (1: the same forms); short and long RMSE: the stylized view i warped into view i + 1 "
+    "Gaussian of sigma 3 px (1: the same forms); forms: SSIM's structure term alone on it (1: the same forms, "
+    "whatever the palette's brightness and contrast); marks fine, mid, coarse: mark contrast, the luminance "
+    "band-pass (sigma 0.6/1.2, 1.2/2.4, 2.4/4.8 px) of the 2x render area-downsampled to the cameras' size, less "
+    "what the unstylized render's same band explains, 4 px inside the silhouette, over the painting's own at the "
+    "run's Stroke Size (1: marks as strong as the painting's; about 0: none); short and long RMSE: the stylized view i warped into view i + 1 "
     "and i + N // 2 with rendered depth and the known poses, masked RMSE."
 )
 

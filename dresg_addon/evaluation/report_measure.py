@@ -383,7 +383,7 @@ def run_stylizations(
             safe = "".join(ch if ch.isalnum() else "_" for ch in f"{style_name}_{label}")
             log_path = work / f"{safe}.jsonl"
             result, log, steps = stylize_with_log(inputs.scene, inputs.cameras, style, config, log_path, plan)
-            measured = evaluate_views(result.scene, base, style).mean
+            measured = evaluate_views(result.scene, base, style, stroke_size=config.stroke_size).mean
             record = RunRecord(
                 label,
                 group,

@@ -20,17 +20,28 @@ key                         better   what it is
 ``texture_kept_2x``         lower    the same on renders at twice the size (8 px inside): detail finer than the
                                      fit size, which only a closer look shows (a capture's sub-pixel texture)
 ``shapes``                  higher   SSIM of the luminance blurred by a Gaussian of sigma 3 px (1: same forms)
+``forms``                   higher   SSIM's structure term alone on that blurred luminance (1: the same forms, at any
+                                     brightness and contrast of the palette)
+``marks_fine``              near 1   mark contrast: the luminance band-pass (difference of Gaussians, sigma 0.6/1.2
+                                     px) of the 2x render area-downsampled by 2, less what the base render's same
+                                     band explains (least squares), 4 px inside the silhouette; its deviation over
+                                     the painting's own at the run's Stroke Size (1: marks as strong as the
+                                     painting's; about 0: none, or only the capture's texture)
+``marks_mid``               near 1   the same at sigma 1.2/2.4 px
+``marks_coarse``            near 1   the same at sigma 2.4/4.8 px
 ``short_rmse``              lower    view i warped into view i + 1 with the rendered depth, masked RMSE
 ``long_rmse``               lower    the same into view i + N // 2 (opposite views on a ring)
 ==========================  =======  ===========================================================================
 
 The painting is resampled to each size it is compared at by :func:`painting_at` (its shorter side to the
 render's), with the coverage of the 2x renders area-downsampled alike, so a 7x7 window sees the same share
-of the painting at every scale.
+of the painting at every scale. Mark contrast compares with the painting as the stylizer paints with it: resampled
+to the view's size x Stroke Size (``loop.style_size``), whole.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -38,13 +49,15 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..method.config import DEFAULT_PRESET, PRESETS
 from ..scene.camera import Camera
 from ..scene.gaussians import GaussianScene
 from ..util.errors import ConfigError, NumericalError
 from . import metrics
 
 SCALES = (("sw_patches", 2), ("sw_patches_half", 4), ("sw_patches_quarter", 8))  # downsampling of the 2x render
-PER_VIEW_KEYS = ("sw_colors", "ssim", "structure", "texture_kept", "texture_kept_2x", "shapes")
+MARK_KEYS = tuple(name for name, _, _ in metrics.MARK_BANDS)  # marks_fine, marks_mid, marks_coarse
+PER_VIEW_KEYS = ("sw_colors", "ssim", "structure", "texture_kept", "texture_kept_2x", "shapes", "forms", *MARK_KEYS)
 KEYS = (*(key for key, _ in SCALES), *PER_VIEW_KEYS, "short_rmse", "long_rmse")
 
 
@@ -136,6 +149,16 @@ def painting_at(painting: torch.Tensor, width: int, height: int) -> torch.Tensor
     return resize_image(painting, max(1, round(w * factor)), max(1, round(h * factor)))
 
 
+def painting_for_marks(painting: torch.Tensor, width: int, height: int, stroke_size: float) -> torch.Tensor:
+    """The painting as the stylizer paints a width x height view with it: resampled (stretched) to that size x Stroke
+    Size, each side rounded, as ``loop.style_size`` and the loop's resampling do."""
+    size = (max(1, round(stroke_size * height)), max(1, round(stroke_size * width)))
+    if tuple(painting.shape[1:]) == size:
+        return painting
+    resized = F.interpolate(painting[None], size=size, mode="bilinear", antialias=True, align_corners=False)
+    return resized[0].clamp(0, 1)
+
+
 def path_consistency(
     renders: Renders,
     cameras: Sequence[Camera],
@@ -167,25 +190,30 @@ def evaluate_views(
     patch_samples: int = 16384,
     depth_tolerance: float = metrics.DEPTH_TOLERANCE,
     alpha_threshold: float = metrics.ALPHA_THRESHOLD,
+    stroke_size: float = PRESETS[DEFAULT_PRESET].stroke_size,
 ) -> ViewEvaluation:
     """Measure ``stylized`` against the painting and the base scene on ``base.cameras`` (the keys of :data:`KEYS`).
 
     ``settings`` (RasterSettings) and ``device`` are the rasterizer's; ``depth_tolerance`` and
-    ``alpha_threshold`` are the consistency warp's occlusion and opacity tests; the rest are the sliced
-    Wasserstein distances' (:mod:`dresg_addon.method.style_distance`).
+    ``alpha_threshold`` are the consistency warp's occlusion and opacity tests; ``stroke_size`` is the run's Stroke
+    Size (the painting's scale for mark contrast; the default preset's for scenes no stylizer run made); the rest
+    are the sliced Wasserstein distances' (:mod:`dresg_addon.method.style_distance`).
     """
     cameras = base.cameras
     check_camera_sizes(cameras, patch)
+    if isinstance(stroke_size, bool) or not isinstance(stroke_size, int | float) or not 0.0 < stroke_size < math.inf:
+        raise ConfigError(f"stroke size must be a positive number, got {stroke_size!r}")
     ours = render_views(stylized, cameras, settings, device, "stylized scene")
     masks = base.renders.alpha
     painting_t = torch.from_numpy(painting).permute(2, 0, 1).contiguous()
     style = painting_at(painting_t, cameras[0].width, cameras[0].height)
     large = [_render(stylized, _twice(c), settings, device, "stylized scene").rgb for c in cameras]
     large = [image.float().permute(2, 0, 1).cpu() for image in large]
-    per_view = {}
+    per_view, downsampled = {}, {}
     for key, factor in SCALES:
         small = [F.avg_pool2d(image[None], factor)[0] for image in large]
         alphas = [F.avg_pool2d(mask[None, None], factor)[0, 0] for mask in base.alpha_2x]
+        downsampled[factor] = small, alphas
         reference = painting_at(painting_t, small[0].shape[2], small[0].shape[1])
         per_view[key] = metrics.sliced_wasserstein_patches(
             small, reference, patch, projections, seed, patch_samples, masks=alphas
@@ -199,8 +227,10 @@ def evaluate_views(
         ("structure", metrics.gradient_structure_similarity),
         ("texture_kept", metrics.texture_kept),
         ("shapes", metrics.shape_similarity),
+        ("forms", metrics.forms_similarity),
     ):
         per_view[key] = torch.stack([measure(a, b, mask=m) for a, b, m in pairs])
+    per_view.update(zip(MARK_KEYS, _mark_contrast(painting_t, *downsampled[2], base.rgb_2x, stroke_size).T))
     per_view["texture_kept_2x"] = torch.stack(
         [metrics.texture_kept(a, b, mask=m, erode=8) for a, b, m in zip(large, base.rgb_2x, base.alpha_2x)]
     )
@@ -215,3 +245,22 @@ def evaluate_views(
         large,
         (int(style.shape[2]), int(style.shape[1])),
     )
+
+
+def _mark_contrast(
+    painting: torch.Tensor,  # [3, h, w]
+    renders: list[torch.Tensor],  # the stylized 2x renders area-downsampled by 2, [3, H, W]
+    alphas: list[torch.Tensor],  # the base's 2x coverage area-downsampled alike, [H, W]
+    base_2x: list[torch.Tensor],  # the base's 2x renders [3, 2H, 2W]
+    stroke_size: float,
+) -> torch.Tensor:  # [views, len(MARK_KEYS)]
+    """:func:`~.metrics.mark_contrast` of every view at the fit size, against the painting at its Stroke Size."""
+    at_size = {}
+    values = []
+    for image, alpha, base in zip(renders, alphas, base_2x):
+        height, width = image.shape[1:]
+        if (width, height) not in at_size:
+            at_size[width, height] = painting_for_marks(painting, width, height, stroke_size)
+        base_small = F.avg_pool2d(base[None], 2)[0]
+        values.append(metrics.mark_contrast(image, base_small, at_size[width, height], mask=alpha))
+    return torch.stack(values)
