@@ -155,7 +155,7 @@ def run(args) -> dict:
             measured = {
                 "style": style_name,
                 "seconds": result.seconds,
-                **evaluate_views(result.scene, base, style).mean,
+                **evaluate_views(result.scene, base, style, stroke_size=config.stroke_size).mean,
             }
             results[key].append(measured)
             print(
