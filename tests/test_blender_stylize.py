@@ -222,7 +222,7 @@ def test_headless_script_with_a_blend_file(addon, shared_data, tmp_path):
     out = tmp_path / "stylized.ply"
     command = [sys.executable, str(REPO / "scripts" / "stylize_headless.py"), "--blend", str(blend)]
     command += ["--ply", str(shared_data("scenes/luigi.ply")), "--style", str(shared_data("styles/the_scream.jpg"))]
-    command += ["--out", str(out), "--stages", "1", "--fit-steps", "2", "--post-steps", "1", "--width", "64"]
+    command += ["--out", str(out), "--stages", "1", "--width", "64"]
     command += ["--height", "48", "--max-views", "2", "--render-scale", "0.5", "--no-geometry"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
@@ -249,7 +249,7 @@ def test_headless_script_without_a_blend_file(shared_data, tmp_path):
     from dresg_addon.scene.orbit import orbit_cameras
 
     ply, style = shared_data("scenes/luigi.ply"), shared_data("styles/the_scream.jpg")
-    quick = ["--stages", "1", "--fit-steps", "2", "--post-steps", "1", "--width", "64", "--height", "48"]
+    quick = ["--stages", "1", "--width", "64", "--height", "48"]
     quick += ["--max-views", "2", "--render-scale", "0.5", "--no-geometry"]
     script = [sys.executable, str(REPO / "scripts" / "stylize_headless.py"), "--ply", str(ply), "--style", str(style)]
 
