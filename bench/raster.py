@@ -2,6 +2,7 @@
 """Rasterizer benchmark (issue 2, section 5). Not a test: it prints tables.
 
     .venv/bin/python bench/raster.py [--quick] [--markdown out.md] [--repeats 3] [--sizes 10000,100000] [--loaded]
+    .venv/bin/python bench/raster.py --against REV [--repeats 3]
 
 Two tables:
 
@@ -20,6 +21,11 @@ after warm-up runs (fewer when one run is slow), with torch's default thread cou
 ``--threads``. The load average is printed: on a shared machine the best run is the better guide to
 what the code can do, and one thread (``--threads 1``) is steadier than two that wait on each other.
 
+``--against REV`` runs only an A/B comparison: ``dresg render`` of the bonsai from ``AB_VIEWS`` orbit cameras
+at 448x320, with this checkout's engine and with REV's (checked out into a temporary git worktree, removed
+after), alternating A B B A ... for ``--repeats`` rounds (default 3); per-view median, best and worst of each,
+the ratio, and the load average before each run. Target on 2 cores: at most ``TARGET_VIEW_S`` a view.
+
 ``--loaded`` adds a third table: the bonsai again while another process takes a core (a pure-Python
 busy loop) and while another torch job runs (its threads spin between ops), against quiet; target:
 at most 2x slower with one core taken.
@@ -34,10 +40,14 @@ import argparse
 import json
 import math
 import os
+import re
+import shutil
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import harness  # bench/, beside this script
@@ -62,6 +72,8 @@ QUICK_KNOB_N = 1_000
 WINDOW_SIZE = (32, 24)  # reference window, at the image centre
 TIME_BUDGET_S = 40.0  # per measurement: fewer repeats when one run is slower than budget / repeats
 WARMUP = 8  # untimed runs before the timed ones (see timed())
+AB_VIEWS = 9  # orbit cameras of the --against comparison
+TARGET_VIEW_S = 0.2  # a bonsai view through `dresg render` on 2 cores
 
 
 def centre_window(width: int, height: int) -> tuple[int, int, int, int]:
@@ -437,6 +449,76 @@ def knob_section(knob_case: dict, name: str, repeats: int, quick: bool) -> list[
     ]
 
 
+# `dresg render` prints a line per view: "orbit_000.png: 448x320, 1,234,567 pairs, 0.21 s"
+VIEW_LINE = re.compile(r": \d+x\d+, ([\d,]+) pairs, ([\d.]+) s$")
+
+
+@contextmanager
+def checkout(rev: str):
+    """``rev`` of this repository in a temporary git worktree (removed afterwards)."""
+    folder = Path(tempfile.mkdtemp(prefix="dresg-against-"))
+    tree = folder / "tree"
+    try:
+        subprocess.run(
+            ["git", "-C", str(REPO), "worktree", "add", "--detach", "--quiet", str(tree), rev],
+            check=True,
+            capture_output=True,
+            text=True,
+        )
+        yield tree
+    finally:
+        if tree.exists():
+            subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], capture_output=True)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def render_views(tree: Path, out: Path) -> tuple[list[float], list[int]]:
+    """Seconds and pairs of each view of `dresg render` of the bonsai's orbit, run with ``tree``'s engine."""
+    command = [sys.executable, "-m", "dresg_addon", "render", str(BONSAI), "--orbit", str(AB_VIEWS)]
+    command += ["--width", str(FULL_SIZE[0]), "--height", str(FULL_SIZE[1]), "--out", str(out)]
+    env = {**os.environ, "PYTHONPATH": str(tree)}  # that tree's engine, whichever one is installed
+    done = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        tail = (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
+        raise RuntimeError(f"dresg render with the engine of {tree} failed: {tail}")
+    found = [m for m in map(VIEW_LINE.search, done.stdout.splitlines()) if m]
+    return [float(m.group(2)) for m in found], [int(m.group(1).replace(",", "")) for m in found]
+
+
+def against_section(rev: str, rounds: int) -> list[str]:
+    """This checkout against ``rev``: the same renders alternating, A B B A ..."""
+    lines = [
+        "",
+        f"A/B: `dresg render` of the bonsai, {AB_VIEWS} orbit views at {FULL_SIZE[0]}x{FULL_SIZE[1]}, this "
+        f"checkout against {rev}, {rounds} alternating rounds; seconds a view, median (best-worst) over every view",
+        "",
+    ]
+    sides = {"this checkout": REPO, rev: None}
+    times: dict[str, list[float]] = {name: [] for name in sides}
+    pairs: dict[str, set[int]] = {name: set() for name in sides}
+    with checkout(rev) as tree, tempfile.TemporaryDirectory(prefix="dresg-against-out-") as out:
+        sides[rev] = tree
+        for round_ in range(rounds):
+            for name in list(sides) if round_ % 2 == 0 else list(sides)[::-1]:
+                load = load_average()
+                seconds, counts = render_views(sides[name], Path(out))
+                times[name] += seconds
+                pairs[name].add(sum(counts))
+                print(f"  round {round_ + 1}, {name}: median {statistics.median(seconds):.3f} s (load {load})",
+                      file=sys.stderr, flush=True)  # fmt: skip
+    lines += ["| engine | s a view | views |", "|---|---:|---:|"]
+    for name, values in times.items():
+        lines.append(
+            f"| {name} | {statistics.median(values):.3f} ({min(values):.3f}-{max(values):.3f}) | {len(values)} |"
+        )
+    this, other = (statistics.median(times[name]) for name in sides)
+    lines.append(f"- this checkout / {rev}: {this / other:.2f}x")
+    lines.append(f"- this checkout: target <= {TARGET_VIEW_S:g} s a view on 2 cores: {mark(this <= TARGET_VIEW_S)}")
+    if len(set.union(*pairs.values())) > 1:
+        lines.append(f"- the two draw different pairs ({pairs}): they do not render the same views")
+    return lines
+
+
 LOADED_TARGET = 2.0  # slowdown against quiet with one core taken
 
 
@@ -496,11 +578,33 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also measure the bonsai (random 100k without it) while another process takes a core",
     )
+    parser.add_argument(
+        "--against",
+        metavar="REV",
+        help="only compare `dresg render` of the bonsai with this checkout's engine and REV's (a git commit), "
+        "alternating",
+    )
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
 
     if args.worker:
         return harness.run_worker(args.worker, WORKERS)
+    if args.against:
+        if not BONSAI.is_file():
+            print(f"error: --against renders the bonsai, and {BONSAI} is absent", file=sys.stderr)
+            return 2
+        try:
+            section = against_section(args.against, max(1, args.repeats or 3))
+        except (RuntimeError, subprocess.CalledProcessError) as error:
+            print(f"error: {getattr(error, 'stderr', '') or error}".strip(), file=sys.stderr)
+            return 2
+        baseline = call_worker({"kind": "baseline", "width": FULL_SIZE[0], "height": FULL_SIZE[1]})
+        out = ["## Rasterizer A/B", "", harness.machine_line(baseline, with_os=True), *section]
+        out.append(f"- load average at the end: {load_average()}")
+        print("\n".join(out))
+        if args.markdown:
+            Path(args.markdown).write_text("\n".join(out) + "\n", encoding="utf-8")
+        return 0
 
     repeats = max(1, args.repeats or (1 if args.quick else 3))
     sizes = [int(s) for s in args.sizes.split(",")] if args.sizes else list(QUICK_SIZES if args.quick else FULL_SIZES)

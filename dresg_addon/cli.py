@@ -3,8 +3,9 @@
 
 Each command module defines ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``.
 Engine errors (:class:`~dresg_addon.util.errors.DresgError`) become one line on stderr and exit code 2.
-``main`` owns the process: it applies the thread policy (:mod:`dresg_addon.util.threads`) and hands each
-command a :class:`~dresg_addon.util.threads.ThreadAdapter` for torch's thread count (``args.threads``).
+``main`` owns the process: it applies the thread policy (:mod:`dresg_addon.util.threads`), hides torch's
+note that CSR tensors are beta, and hands each command a :class:`~dresg_addon.util.threads.ThreadAdapter`
+for torch's thread count (``args.threads``).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 
 from . import __version__
 from .util.errors import DresgError
@@ -58,6 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     apply_thread_policy()  # before any command loads torch: libgomp reads it once
+    # torch's once-a-process note that its CSR tensors (the colour maps') are beta: nothing a user can act on
+    warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
     args = build_parser().parse_args(argv)
     args.threads = ThreadAdapter()  # the commands call it between views and steps, on this thread
     try:

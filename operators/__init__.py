@@ -5,6 +5,8 @@ Each operator reads properties, calls one engine function and writes the result 
 the operators, so enabling the extension stays instant and works without torch.
 """
 
+import sys
+
 import bpy
 
 ADDON_PACKAGE = __package__.rpartition(".")[0]  # the extension's root package (bl_ext.REPO.ID when installed)
@@ -43,6 +45,10 @@ def register() -> None:
 
 def unregister() -> None:
     tasks.stop_jobs()
+    # the rasterizer's threads, if a run started them (importing the engine here would load torch)
+    workers = sys.modules.get(f"{ADDON_PACKAGE}.dresg_addon.raster.workers")
+    if workers is not None:
+        workers.shutdown()
     render_setup.unregister()
     properties.detach()
     for cls in reversed(classes):

@@ -2,13 +2,31 @@
 
 import os
 import time
-import warnings
 
 import bpy
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ..dresg_addon.util.errors import DresgError
 from .splat_object import create_splat_object, is_splat_object, scene_from_object
+
+# F12 calls the render set-up's handlers on the render thread: they change the splat objects only with the
+# interface locked (render_setup.py), so the import turns the lock on, says so, and Unlock Interface undoes it.
+LOCKED_BY_IMPORT = "dresg_locked_interface"  # scene property: the import turned Lock Interface on (it was off)
+LOCKED_NOTE = "turned on Render > Lock Interface, which F12 renders of splats need"
+
+
+def lock_interface(scene) -> bool:
+    """Turn on the scene's Render > Lock Interface; True when it was off (the scene remembers that)."""
+    if scene.render.use_lock_interface:
+        return False
+    scene.render.use_lock_interface = True
+    scene[LOCKED_BY_IMPORT] = True
+    return True
+
+
+def locked_by_import(scene) -> bool:
+    """Whether the lock is on because an import turned it on (the panel then offers Unlock Interface)."""
+    return scene is not None and bool(scene.get(LOCKED_BY_IMPORT)) and scene.render.use_lock_interface
 
 
 class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
@@ -88,13 +106,11 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
     def execute(self, context):
         from ..dresg_addon.blender.splat_mesh import AXIS_CONVERSION_UP
         from ..dresg_addon.scene.camera_io import detect_up_axis
-        from ..dresg_addon.scene.io import InvalidSplatsWarning, read_scene_detailed
+        from ..dresg_addon.scene.io import clamped_note, read_scene_detailed
 
         start = time.perf_counter()
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", InvalidSplatsWarning)
-                result = read_scene_detailed(self.filepath, drop_invalid=self.drop_invalid)
+            result = read_scene_detailed(self.filepath, drop_invalid=self.drop_invalid)
             if self.axis_conversion == "AUTO":
                 up_axis, axes_reason = detect_up_axis(self.filepath, result.scene)
             else:
@@ -116,9 +132,7 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
         except DresgError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        # F12 calls the render set-up's handlers on the render thread: they change the objects only with the
-        # interface locked (render_setup.py)
-        context.scene.render.use_lock_interface = True
+        locked = lock_interface(context.scene)
         if self.set_viewport_shading:
             for area in context.screen.areas if context.screen else ():
                 if area.type == "VIEW_3D":
@@ -130,10 +144,11 @@ class DRESG_OT_import_splats(bpy.types.Operator, ImportHelper):
         message = f"Imported {len(result.scene)} splats ({result.format.value}) as '{obj.name}' in {seconds:.2f} s"
         if axes_reason:
             message += f"; Axes: Automatic: {axes_reason}"
-        if result.dropped:
-            self.report({"WARNING"}, f"{message}; dropped {result.dropped} invalid splats")
-        else:
-            self.report({"INFO"}, message)
+        if locked:
+            message += f"; {LOCKED_NOTE} (Unlock Interface in the Stylize Gaussians panel undoes it)"
+        notes = [f"dropped {result.dropped} invalid splats"] if result.dropped else []
+        notes += [clamped_note(result.clamped)] if result.clamped else []
+        self.report({"WARNING"} if notes else {"INFO"}, "; ".join([message, *notes]))
         return {"FINISHED"}
 
     def draw(self, context):
@@ -183,4 +198,27 @@ class DRESG_OT_export_splats(bpy.types.Operator, ExportHelper):
         return {"FINISHED"}
 
 
-classes = (DRESG_OT_import_splats, DRESG_OT_export_splats)
+class DRESG_OT_unlock_interface(bpy.types.Operator):
+    """Turn Render > Lock Interface off again, as it was before the import turned it on (F12 renders of splat
+    objects then show them as the viewport does)"""
+
+    bl_idname = "dresg.unlock_interface"
+    bl_label = "Unlock Interface"
+    bl_options = {"REGISTER", "UNDO"}
+
+    keep: bpy.props.BoolProperty(name="Keep Locked", description="Keep the lock on and hide the note")
+
+    @classmethod
+    def poll(cls, context):
+        return locked_by_import(context.scene)
+
+    def execute(self, context):
+        scene = context.scene
+        del scene[LOCKED_BY_IMPORT]
+        if not self.keep:
+            scene.render.use_lock_interface = False
+            self.report({"INFO"}, "Render > Lock Interface is off again")
+        return {"FINISHED"}
+
+
+classes = (DRESG_OT_import_splats, DRESG_OT_export_splats, DRESG_OT_unlock_interface)

@@ -6,7 +6,7 @@ import bpy
 
 from ..dresg_addon.method.config import preset_label
 from ..dresg_addon.method.medium import allows_geometry, holds_scene_light, sets_its_own_stages
-from ..operators import dependencies, job
+from ..operators import dependencies, io_ops, job
 from ..operators.splat_nodes import (
     INPUT_MAX_SPLATS,
     INPUT_MIN_OPACITY,
@@ -27,6 +27,17 @@ def _wrapped(layout, text: str, width: int = 48, icon: str = "NONE") -> None:
     column = layout.column(align=True)
     for index, line in enumerate(textwrap.wrap(text, width) or [""]):
         column.label(text=line, icon=icon if index == 0 else "BLANK1")
+
+
+def _draw_lock_note(layout, scene) -> None:
+    """The import turned Render > Lock Interface on: say so, with the one-click undo."""
+    if not io_ops.locked_by_import(scene):
+        return
+    box = layout.box()
+    _wrapped(box, f"The import {io_ops.LOCKED_NOTE}", icon="LOCKED")
+    row = box.row(align=True)
+    row.operator("dresg.unlock_interface", icon="UNLOCKED")
+    row.operator("dresg.unlock_interface", text="Keep", icon="CHECKMARK").keep = True
 
 
 class SplatPanel:
@@ -75,6 +86,7 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
         if not is_splat_object(obj):
             layout.label(text="Select a splat object, or import one:")
             layout.operator("dresg.import_splats", icon="IMPORT")
+            _draw_lock_note(layout, context.scene)
             return
         mesh = obj.data
         box = layout.box()
@@ -85,6 +97,7 @@ class DRESG_PT_main(SplatPanel, bpy.types.Panel):
         row.prop(obj, "dresg_up_flip", toggle=True)
         if "dresg_stylize_settings" in obj:
             box.label(text=_stylized_label(obj), icon="BRUSH_DATA")
+        _draw_lock_note(layout, context.scene)
 
         if not dependencies.torch_available():
             from .preferences import draw_dependencies

@@ -24,7 +24,6 @@ a 1D tensor is several times faster than one of rows of a [N, 3] tensor.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -519,19 +518,17 @@ class SparseColorMap:
         self._gauss, self._weight = gauss, weight
         # 32-bit indices where they fit: the products read every index, and half the bytes make them ~40% faster.
         index = torch.int32 if max(n_pix, n_columns, weight.numel()) < 2**31 - 1 else torch.int64
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-            crow = torch.zeros(n_pix + 1, dtype=torch.long, device=pixel.device)
-            crow[1:] = torch.cumsum(torch.bincount(pixel, minlength=n_pix), 0)
-            self.matrix = torch.sparse_csr_tensor(
-                crow.to(index), gauss.to(index), weight, (n_pix, n_columns), check_invariants=False
-            )
-            order = torch.sort(gauss, stable=True).indices
-            crow_t = torch.zeros(n_columns + 1, dtype=torch.long, device=pixel.device)
-            crow_t[1:] = torch.cumsum(torch.bincount(gauss, minlength=n_columns), 0)
-            self.matrix_t = torch.sparse_csr_tensor(
-                crow_t.to(index), pixel[order].to(index), weight[order], (n_columns, n_pix), check_invariants=False
-            )
+        crow = torch.zeros(n_pix + 1, dtype=torch.long, device=pixel.device)
+        crow[1:] = torch.cumsum(torch.bincount(pixel, minlength=n_pix), 0)
+        self.matrix = torch.sparse_csr_tensor(
+            crow.to(index), gauss.to(index), weight, (n_pix, n_columns), check_invariants=False
+        )
+        order = torch.sort(gauss, stable=True).indices
+        crow_t = torch.zeros(n_columns + 1, dtype=torch.long, device=pixel.device)
+        crow_t[1:] = torch.cumsum(torch.bincount(gauss, minlength=n_columns), 0)
+        self.matrix_t = torch.sparse_csr_tensor(
+            crow_t.to(index), pixel[order].to(index), weight[order], (n_columns, n_pix), check_invariants=False
+        )
 
     @property
     def nnz(self) -> int:
