@@ -427,3 +427,25 @@ def test_blender_preview_uses_the_rasterizers_low_pass():
     from dresg_addon.raster.projection import LOW_PASS
 
     assert splat_mesh.LOW_PASS == LOW_PASS
+
+
+@pytest.mark.filterwarnings("ignore:Sparse CSR tensor support is in beta state")
+def test_rendering_leaves_the_warnings_filters_alone(monkeypatch):
+    """warnings.filters is process-wide: changing it, even for a moment, races with other threads (issue 42)."""
+    import warnings
+
+    before, seen = list(warnings.filters), []
+    original = torch.sparse_csr_tensor
+
+    def sparse_csr_tensor(*args, **kwargs):
+        seen.append(list(warnings.filters))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(torch, "sparse_csr_tensor", sparse_csr_tensor)
+    means, quats, log_scales, logits, colors = tensors(random_scene(300, 8), dtype=torch.float32)
+    settings = RasterSettings(band_pairs=2_000)  # several bands: the band pool runs
+    render(means, quats, log_scales, logits, colors, camera(64, 48, 50.0), settings)
+    fast = ColorOnlyRenderer(means, quats, log_scales, logits, camera(64, 48, 50.0), settings)
+    fast.linear_map(1e-3).only_columns(torch.ones(300, dtype=torch.bool))
+    assert len(seen) >= 2 and all(filters == before for filters in seen)  # the colour maps' CSR matrices
+    assert warnings.filters == before

@@ -5,6 +5,7 @@ engine or by ``render`` (in Blender the process is Blender's)."""
 import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -95,6 +96,76 @@ def test_render_sets_no_thread_count():
     started later get torch's count as before (the pool's own one-thread setting does not leak to them)."""
     pytest.importorskip("torch")
     assert _python(RENDER_CODE, _without_thread_settings()) == ["0", "0", "0", "True", "True", "True"]
+
+
+def _in_new_thread(function):
+    result = []
+    thread = threading.Thread(target=lambda: result.append(function()))
+    thread.start()
+    thread.join()
+    return result[0]
+
+
+def test_the_pool_workers_run_one_torch_thread_each():
+    """Issue 44: torch sets a thread up from the count last set on any thread, at its first call there; the pool
+    sets the count new threads get back after starting, which must not reach its own workers (two torch threads
+    each on two cores made every view a third slower)."""
+    torch = pytest.importorskip("torch")
+    from dresg_addon.raster.workers import WorkerPool
+
+    for_new_threads = _in_new_thread(torch.get_num_threads)
+    own = torch.get_num_threads()
+    _in_new_thread(lambda: torch.set_num_threads(3))  # what the pool sets back: not 1, whatever the cores
+    pool = WorkerPool()
+    try:
+        assert pool.map(lambda worker, item: torch.get_num_threads(), list(range(6)), 3) == [1] * 6
+        assert _in_new_thread(torch.get_num_threads) == 3 and torch.get_num_threads() == own
+        _in_new_thread(lambda: torch.set_num_threads(2))  # a host's thread choosing its count later
+        assert pool.map(lambda worker, item: torch.get_num_threads(), list(range(6)), 3) == [1] * 6
+    finally:
+        pool.shutdown()
+        _in_new_thread(lambda: torch.set_num_threads(for_new_threads))
+
+
+def test_the_pool_shuts_down_and_starts_again():
+    """Issue 42: the pool's threads end on shutdown (the add-on's unregister calls it) and start again on use."""
+    pytest.importorskip("torch")
+    from dresg_addon.raster.workers import WorkerPool
+
+    pool = WorkerPool()
+    started = threading.Barrier(2, timeout=30)
+
+    def thread(worker, item):
+        started.wait()  # both workers at once: two threads
+        return threading.current_thread()
+
+    first = pool.map(thread, [0, 1], 2)
+    assert pool.threads == 2 and len(set(first)) == 2 and all(t.is_alive() for t in first)
+    pool.shutdown()
+    assert pool.threads == 0 and not any(t.is_alive() for t in first)
+    pool.shutdown()  # twice: nothing left to end
+    again = pool.map(thread, [0, 1], 2)
+    assert pool.threads == 2 and all(t.is_alive() for t in again) and not set(again) & set(first)
+
+    # A shutdown while work runs waits for it: that work finishes, and the next call starts new threads.
+    go, running, results = threading.Event(), threading.Barrier(3, timeout=30), []
+
+    def slow(worker, item):
+        running.wait()
+        go.wait(30)
+        return item * 10
+
+    runner = threading.Thread(target=lambda: results.append(pool.map(slow, [1, 2], 2)))
+    runner.start()
+    running.wait()
+    stopper = threading.Thread(target=pool.shutdown)
+    stopper.start()
+    go.set()
+    runner.join(30)
+    stopper.join(30)
+    assert results == [[10, 20]] and pool.threads == 0
+    assert pool.map(lambda worker, item: item, [1, 2, 3], 2) == [1, 2, 3] and pool.threads == 2
+    pool.shutdown()
 
 
 def test_the_cli_main_applies_the_policy(tmp_path):
