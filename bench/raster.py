@@ -2,7 +2,7 @@
 """Rasterizer benchmark (issue 2, section 5). Not a test: it prints tables.
 
     .venv/bin/python bench/raster.py [--quick] [--markdown out.md] [--repeats 3] [--sizes 10000,100000] [--loaded]
-    .venv/bin/python bench/raster.py --against REV [--repeats 3]
+    .venv/bin/python bench/raster.py --against REV [--repeats 3] [--quiet 0.3]
 
 Two tables:
 
@@ -24,7 +24,8 @@ what the code can do, and one thread (``--threads 1``) is steadier than two that
 ``--against REV`` runs only an A/B comparison: ``dresg render`` of the bonsai from ``AB_VIEWS`` orbit cameras
 at 448x320, with this checkout's engine and with REV's (checked out into a temporary git worktree, removed
 after), alternating A B B A ... for ``--repeats`` rounds (default 3); per-view median, best and worst of each,
-the ratio, and the load average before each run. Target on 2 cores: at most ``TARGET_VIEW_S`` a view.
+the ratio, and the load before each run; ``--quiet CORES`` waits before each run until other processes use at
+most CORES cores (a shared machine). Target on 2 cores: at most ``TARGET_VIEW_S`` a view.
 
 ``--loaded`` adds a third table: the bonsai again while another process takes a core (a pure-Python
 busy loop) and while another torch job runs (its threads spin between ops), against quiet; target:
@@ -53,6 +54,7 @@ from pathlib import Path
 import harness  # bench/, beside this script
 
 from dresg_addon.util.machine import load_average
+from dresg_addon.util.threads import ADAPT_INTERVAL_S
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("DRESG_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -74,6 +76,7 @@ TIME_BUDGET_S = 40.0  # per measurement: fewer repeats when one run is slower th
 WARMUP = 8  # untimed runs before the timed ones (see timed())
 AB_VIEWS = 9  # orbit cameras of the --against comparison
 TARGET_VIEW_S = 0.2  # a bonsai view through `dresg render` on 2 cores
+QUIET_WAIT_S = 300.0  # --quiet: the longest wait for a quiet moment before a run (then it runs anyway)
 
 
 def centre_window(width: int, height: int) -> tuple[int, int, int, int]:
@@ -485,27 +488,49 @@ def render_views(tree: Path, out: Path) -> tuple[list[float], list[int]]:
     return [float(m.group(2)) for m in found], [int(m.group(1).replace(",", "")) for m in found]
 
 
-def against_section(rev: str, rounds: int) -> list[str]:
-    """This checkout against ``rev``: the same renders alternating, A B B A ..."""
+def wait_for_quiet(cores: float | None, monitor, max_wait_s: float = QUIET_WAIT_S) -> str:
+    """Wait until other processes used at most ``cores`` cores over 2 s (at most ``max_wait_s``); what was seen."""
+    if cores is None:
+        return f"load {load_average()}"
+    start = time.monotonic()
+    monitor.others_busy(min_interval_s=0.0)  # a fresh window: the last one held our own previous run
+    while True:
+        time.sleep(ADAPT_INTERVAL_S)
+        others = monitor.others_busy()
+        if others is None or others <= cores or time.monotonic() - start > max_wait_s:
+            break
+    seen = "unknown" if others is None else f"{others:.2f}"
+    return f"other processes {seen} cores, waited {time.monotonic() - start:.0f} s, load {load_average()}"
+
+
+def against_section(rev: str, rounds: int, quiet: float | None = None) -> list[str]:
+    """This checkout against ``rev``: the same renders alternating, A B B A ..., each after a quiet moment."""
+    from dresg_addon.util.threads import CoreMonitor
+
+    when = "" if quiet is None else f", each run once other processes used at most {quiet:g} cores over 2 s"
     lines = [
         "",
         f"A/B: `dresg render` of the bonsai, {AB_VIEWS} orbit views at {FULL_SIZE[0]}x{FULL_SIZE[1]}, this "
-        f"checkout against {rev}, {rounds} alternating rounds; seconds a view, median (best-worst) over every view",
+        f"checkout against {rev}, {rounds} alternating rounds{when}; seconds a view, median (best-worst) over "
+        "every view",
         "",
     ]
+    monitor = CoreMonitor()
     sides = {"this checkout": REPO, rev: None}
     times: dict[str, list[float]] = {name: [] for name in sides}
     pairs: dict[str, set[int]] = {name: set() for name in sides}
+    runs: list[str] = []
     with checkout(rev) as tree, tempfile.TemporaryDirectory(prefix="dresg-against-out-") as out:
         sides[rev] = tree
         for round_ in range(rounds):
             for name in list(sides) if round_ % 2 == 0 else list(sides)[::-1]:
-                load = load_average()
+                before = wait_for_quiet(quiet, monitor)
                 seconds, counts = render_views(sides[name], Path(out))
                 times[name] += seconds
                 pairs[name].add(sum(counts))
-                print(f"  round {round_ + 1}, {name}: median {statistics.median(seconds):.3f} s (load {load})",
-                      file=sys.stderr, flush=True)  # fmt: skip
+                line = f"round {round_ + 1}, {name}: median {statistics.median(seconds):.3f} s a view ({before})"
+                runs.append(f"- {line}")
+                print(f"  {line}", file=sys.stderr, flush=True)
     lines += ["| engine | s a view | views |", "|---|---:|---:|"]
     for name, values in times.items():
         lines.append(
@@ -516,7 +541,7 @@ def against_section(rev: str, rounds: int) -> list[str]:
     lines.append(f"- this checkout: target <= {TARGET_VIEW_S:g} s a view on 2 cores: {mark(this <= TARGET_VIEW_S)}")
     if len(set.union(*pairs.values())) > 1:
         lines.append(f"- the two draw different pairs ({pairs}): they do not render the same views")
-    return lines
+    return lines + ["", "Runs, in order:", *runs]
 
 
 LOADED_TARGET = 2.0  # slowdown against quiet with one core taken
@@ -584,6 +609,13 @@ def main(argv: list[str] | None = None) -> int:
         help="only compare `dresg render` of the bonsai with this checkout's engine and REV's (a git commit), "
         "alternating",
     )
+    parser.add_argument(
+        "--quiet",
+        type=float,
+        metavar="CORES",
+        help=f"with --against: before each run wait (at most {QUIET_WAIT_S:g} s) until other processes used at most "
+        "CORES cores over 2 s",
+    )
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
 
@@ -594,7 +626,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: --against renders the bonsai, and {BONSAI} is absent", file=sys.stderr)
             return 2
         try:
-            section = against_section(args.against, max(1, args.repeats or 3))
+            section = against_section(args.against, max(1, args.repeats or 3), args.quiet)
         except (RuntimeError, subprocess.CalledProcessError) as error:
             print(f"error: {getattr(error, 'stderr', '') or error}".strip(), file=sys.stderr)
             return 2
