@@ -43,6 +43,7 @@ import math
 import os
 import re
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -76,7 +77,7 @@ TIME_BUDGET_S = 40.0  # per measurement: fewer repeats when one run is slower th
 WARMUP = 8  # untimed runs before the timed ones (see timed())
 AB_VIEWS = 9  # orbit cameras of the --against comparison
 TARGET_VIEW_S = 0.2  # a bonsai view through `dresg render` on 2 cores
-QUIET_WAIT_S = 300.0  # --quiet: the longest wait for a quiet moment before a run (then it runs anyway)
+QUIET_WAIT_S = 120.0  # --quiet: the longest wait for a quiet moment before a run (then it runs anyway)
 
 
 def centre_window(width: int, height: int) -> tuple[int, int, int, int]:
@@ -622,6 +623,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.worker:
         return harness.run_worker(args.worker, WORKERS)
     if args.against:
+        signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # killed: the temporary worktree still goes
         if not BONSAI.is_file():
             print(f"error: --against renders the bonsai, and {BONSAI} is absent", file=sys.stderr)
             return 2
