@@ -212,6 +212,12 @@ class DRESG_OT_unlock_interface(bpy.types.Operator):
     def poll(cls, context):
         return locked_by_import(context.scene)
 
+    @classmethod
+    def description(cls, context, properties):
+        return (
+            "Keep Render > Lock Interface on and hide this note" if properties.keep else " ".join(cls.__doc__.split())
+        )
+
     def execute(self, context):
         scene = context.scene
         del scene[LOCKED_BY_IMPORT]
