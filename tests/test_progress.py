@@ -210,3 +210,30 @@ def test_the_fits_prior_cost_counts_what_the_fit_runs():
     assert fit_cost("paper") == pytest.approx(0.8 * preset_run("paper")[1].fit_steps)
     config, plan = preset_run("paper", proposal="sd15")
     assert prior_costs(config, plan, BACKENDS["sd15"])["proposal"] == BACKENDS["sd15"].proposal_cost * 10
+
+
+def test_stages_not_run_yet_are_priced_by_their_own_cost():
+    """A coarse-to-fine backend's full-resolution stages cost more than its coarse ones (relative_cost): once
+    stages 1 and 2 (cost 1 each) took 2 s of proposals each, stage 3 (cost 3) is expected to take 6 s."""
+    clock = Clock()
+    model = ProgressModel(clock)
+    model.plan(3, False)
+    model.set_counts(cameras=0, views=1)
+    model.set_stage_costs([1.0, 1.0, 3.0])
+    assert model.weight("proposal", 3) == pytest.approx(3 * model.weight("proposal", 1))  # priced before any ran
+    for stage in (1, 2):
+        model.timed[("proposal", stage)] = 2.0
+    assert model.weight("proposal", 3) == pytest.approx(6.0)
+    model.set_stage_costs([1.0, float("nan"), 0.0])  # unusable costs are left out: the stages' mean
+    assert model.weight("proposal", 3) == pytest.approx(2.0)
+
+
+def test_the_synth_backend_prices_its_full_resolution_stages_above_its_coarse_ones():
+    from dresg_addon.method.proposal.synth import SynthBackend
+    from dresg_addon.method.schedule import stage_timesteps
+
+    backend = SynthBackend()
+    costs = [backend.relative_cost(stage.timesteps, 320, 448) for stage in stage_timesteps(12, 1)]
+    assert all(math.isfinite(c) and c > 0 for c in costs) and costs == sorted(costs)
+    assert costs[-1] == pytest.approx(2.9 * costs[0], rel=0.05)  # 14.8 s against 5.0 s, measured
+    assert backend.relative_cost([], 320, 448) == 0.0

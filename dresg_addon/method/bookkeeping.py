@@ -158,6 +158,7 @@ class ProgressModel:
         self.stages, self.post, self.first_stage = 0, False, 1
         self.counts = {"select": 1, "views": 1}  # candidate cameras, active views
         self.costs = dict(PRIOR_COSTS)
+        self.stage_costs: dict[int, float] = {}  # stage -> its proposals' relative cost (ProposalBackend.relative_cost)
         self.timed: dict[tuple[str, int], float] = {}  # (phase, stage) -> seconds, for the parts that ended
         self.current: tuple[str, int] | None = None
         self.current_started = 0.0
@@ -170,6 +171,11 @@ class ProgressModel:
         self.stages, self.post = stages, post
         if costs is not None:
             self.costs = {**PRIOR_COSTS, **costs}
+
+    def set_stage_costs(self, costs: Sequence[float]) -> None:
+        """Each stage's proposals' relative cost, stage 1 first: a stage not run yet is priced by it, so the fine
+        stages of a coarse-to-fine backend are not priced as its coarse ones."""
+        self.stage_costs = {n: float(c) for n, c in enumerate(costs, 1) if math.isfinite(c) and c > 0}
 
     def set_counts(self, cameras: int | None = None, views: int | None = None) -> None:
         """The candidate cameras view selection renders (0: the views were given) and the active views."""
@@ -231,9 +237,19 @@ class ProgressModel:
         """Expected seconds of the part (phase, stage) (class docstring)."""
         if (phase, stage) in self.timed:
             return self.timed[(phase, stage)]
+        if phase == "proposal" and stage in self.stage_costs:
+            cost = self.stage_costs[stage]
+            ran = [(s, t) for (kind, s), t in self.timed.items() if kind == "proposal" and s in self.stage_costs]
+            if ran:  # seconds per unit of cost, from the stages that ran
+                return sum(t for _, t in ran) / sum(self.stage_costs[s] for s, _ in ran) * cost
+            return self._unmeasured(phase) * cost * len(self.stage_costs) / sum(self.stage_costs.values())
         seconds = self._measured(phase)
         if seconds is not None:
             return seconds
+        return self._unmeasured(phase)
+
+    def _unmeasured(self, phase: str) -> float:
+        """Seconds for a part of a kind no part has timed: its prior cost x the seconds per unit the ended parts took."""
         timed_units = sum(self._units(kind) for kind, _ in self.timed)
         rate = sum(self.timed.values()) / timed_units if timed_units > 0 and self.timed else 1.0
         return self._units(phase) * rate

@@ -421,6 +421,7 @@ class Stylization:
         self.fitter.covered = [a > COVERED for a in self.alphas]  # its steps' RMSE over covered pixels, for progress
         self.brightness = scene_brightness(self.contents, self.coverages)
         self.backend = self.entry.make(self.config, self.plan, self.brightness, self.device)
+        self.hooks.model.set_stage_costs([self.backend.relative_cost(s.timesteps, *self.size) for s in self.stages])
         note = light_note(self.entry, self.config, self.brightness)
         if note:
             self.hooks.note(note)

@@ -85,6 +85,11 @@ class ProposalBackend(ABC):
         """
         return True
 
+    def relative_cost(self, timesteps: Sequence[int], height: int, width: int) -> float:
+        """What a stage of these timesteps costs a view at ``height`` x ``width``, in units of the backend's own
+        (only ratios between stages count: the progress bar prices a stage not yet run by them). One per update."""
+        return float(len(timesteps))
+
     @abstractmethod
     def encode(self, image: torch.Tensor) -> torch.Tensor:
         """[3, H, W] image in [0, 1] -> state tensor (detached, float32)."""
