@@ -140,3 +140,9 @@ def test_quality_bench_rows_name_settings_and_plan_fields():
     )
     with pytest.raises(SystemExit, match="neither a StylizeConfig setting nor a Plan field"):
         row_settings("standard@layer_agreement=0.5")
+
+
+def test_a_bad_choice_names_the_value_given():
+    for name, value in (("proposal", "sd21"), ("medium", "oil"), ("sh_rest", "half"), ("preset", "fast")):
+        with pytest.raises(ConfigError, match=f"got '{value}'"):
+            StylizeConfig().with_(**{name: value})

@@ -111,10 +111,10 @@ class StylizeConfig:
     def __post_init__(self) -> None:
         _check(
             [
-                (self.preset in PLANS, f"preset must be one of {', '.join(PLANS)}"),
+                (self.preset in PLANS, f"preset must be one of {', '.join(PLANS)} (got {self.preset!r})"),
                 (self.stages >= 1, "stages must be >= 1"),
                 (self.max_views >= 0, "max_views must be >= 0 (0: no cap)"),
-                (self.proposal in BACKENDS, f"proposal must be one of {', '.join(BACKENDS)}"),
+                (self.proposal in BACKENDS, f"proposal must be one of {', '.join(BACKENDS)} (got {self.proposal!r})"),
                 (self.proposal_width >= 8 and self.proposal_height >= 8, "proposal size must be at least 8x8"),
                 (
                     math.isfinite(self.stroke_size) and 0.25 <= self.stroke_size <= 8,
@@ -122,8 +122,11 @@ class StylizeConfig:
                 ),
                 (0 <= self.scene_weight <= 1, f"scene_weight must be in [0, 1] (got {self.scene_weight})"),
                 (0 <= self.scene_light <= 1, f"scene_light must be in [0, 1] (got {self.scene_light})"),
-                (self.medium in MEDIA, f"medium must be one of {', '.join(MEDIA)}"),
-                (self.sh_rest in SH_REST_MODES, f"sh_rest must be one of {', '.join(SH_REST_MODES)}"),
+                (self.medium in MEDIA, f"medium must be one of {', '.join(MEDIA)} (got {self.medium!r})"),
+                (
+                    self.sh_rest in SH_REST_MODES,
+                    f"sh_rest must be one of {', '.join(SH_REST_MODES)} (got {self.sh_rest!r})",
+                ),
                 (
                     len(self.background) == 3 and all(math.isfinite(c) for c in self.background),
                     "background must be three finite numbers",

@@ -54,7 +54,7 @@ def read_cameras_json(path: str | os.PathLike) -> list[Camera]:
             raise CameraError(f"{where}: malformed values ({error})") from None
         if position.shape != (3,):
             raise CameraError(f"{where}: position has shape {position.shape}, expected (3,)")
-        _finite(position, where)
+        _finite(position, f"{where}: position")
         c2w = checked_rotation(rotation, where)
         w2c = rigid_matrix(c2w.T, -c2w.T @ position)
         name = str(entry.get("img_name", entry.get("id", index)))

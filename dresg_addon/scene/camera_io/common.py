@@ -75,7 +75,9 @@ def _short(value) -> str:
 
 def _camera(where: str, width, height, fx, fy, cx, cy, w2c, name: str) -> Camera:
     width, height = _image_size(width, height, where)
-    intrinsics = _finite([fx, fy, cx, cy], where)
+    for label, value in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)):
+        _finite(value, f"{where}: {label}")
+    intrinsics = np.asarray([fx, fy, cx, cy], dtype=np.float64)
     if intrinsics[0] <= 0 or intrinsics[1] <= 0:
         raise CameraError(f"{where}: focal lengths fx={intrinsics[0]:g}, fy={intrinsics[1]:g} must be positive")
     return Camera(width, height, *map(float, intrinsics), world_to_camera=w2c, name=name)
