@@ -347,7 +347,7 @@ def build_library(style: torch.Tensor, size: int, settings: SynthSettings, gener
 # --- Scale, content and colour ---------------------------------------------------------------------------
 
 
-PASS_OVERHEAD = 1.9  # a pass's cost that does not shrink with its level, in full-resolution pixels' (relative_cost)
+PASS_OVERHEAD = 2.6  # a pass's cost that does not shrink with its level, in full-resolution pixels' (relative_cost)
 
 
 def pyramid_levels(height: int, width: int, settings: SynthSettings) -> int:
@@ -651,8 +651,8 @@ class SynthBackend(ProposalBackend):
 
     def relative_cost(self, timesteps: Sequence[int], height: int, width: int) -> float:
         """A pass costs PASS_OVERHEAD plus its level's share of the full-resolution pixels, in units of the latter:
-        on bonsai x Starry Night (preview, 8 views, quiet) a stage's proposals took 2.5 s at the coarsest level and
-        3.7 s at full resolution, which 1.9 + 4^-level gives."""
+        on bonsai x Starry Night (quiet) a stage's proposals took 2.5 s at the coarsest level and 3.7 s at full
+        resolution with preview's 8 views, 5.0 s and 6.4 s with standard's 16: 2.6 + 4^-level gives their middle."""
         if not timesteps:
             return 0.0
         levels = pyramid_levels(height, width, self.settings)
