@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
-from dresg_addon.method.config import Plan, StylizeConfig, preset_run
+from dresg_addon.method.config import Ablation, Plan, StylizeConfig, preset_run
 
 
 @dataclass(frozen=True)
@@ -17,8 +17,7 @@ class Variant:
         return cls(*preset_run(name, **changes))
 
     def with_(self, **changes) -> Variant:
-        config, plan = preset_run(self.config.preset)  # which names are the plan's
-        plan_names = set(vars(plan)) | set(vars(plan.ablation))
+        plan_names = {f.name for f in fields(Plan)} | {f.name for f in fields(Ablation)}
         settings = {k: v for k, v in changes.items() if k not in plan_names}
         steps = {k: v for k, v in changes.items() if k in plan_names}
         return Variant(self.config.with_(**settings), self.plan.with_(**steps))

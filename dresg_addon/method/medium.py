@@ -2,8 +2,8 @@
 
 :class:`Paint` and :class:`Ink` each say what they change of the run's settings (:meth:`Medium.settle`, every
 change said to the user), how a view is guided by the views before it (:meth:`Medium.guides`), how the colour fit
-picks each splat's colour from the views (:meth:`Medium.pick_colors`) and what scale the splats are compared with
-(:meth:`Medium.mark_scale`). The loop calls them and names neither.
+picks each splat's colour from the views (:meth:`Medium.pick_colors`) and what the splats are compared with
+(:meth:`Medium.footprint_note`). The loop calls them and names neither.
 
 A pen-and-ink drawing is lines 1-3 px wide on a light ground. Painted the way a painting is, its hatching
 comes out grey: each view places its lines in its own places, a few pixels off those of its neighbours, and
@@ -307,21 +307,13 @@ class _PaintedGuides(ViewGuides):
         return painted_guide(self.turn, view, self.run.cameras[view], self.run.size, self.weight)
 
     def proposed(self, view, proposal):
+        from ..util.imageio import resize_image
+
         camera = self.run.cameras[view]
-        self.turn.paint(view, _resized(proposal, camera.height, camera.width))
+        self.turn.paint(view, resize_image(proposal, camera.width, camera.height).clamp(0, 1))
 
     def painting(self):
         return self.turn
-
-
-def _resized(image, height: int, width: int):  # [3, h, w] -> [3, height, width] in [0, 1]
-    import torch
-
-    if image.shape[-2:] == (height, width):
-        return image
-    return torch.nn.functional.interpolate(
-        image[None], size=(height, width), mode="bilinear", antialias=True, align_corners=False
-    )[0].clamp(0, 1)
 
 
 class Ink(Medium):
