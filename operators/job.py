@@ -19,7 +19,7 @@ from ..dresg_addon.method.bookkeeping import Note, ProgressLines, format_seconds
 from ..dresg_addon.scene.gaussians import SH_C0
 from ..dresg_addon.util.errors import DresgError
 from ..dresg_addon.util.threads import ThreadAdapter
-from .splat_object import is_splat_object, object_mode, write_colors, write_geometry
+from .splat_object import is_splat_object, object_mode, split_splats, write_colors, write_geometry
 from .tasks import Job, JobState
 from .views import record_seen
 
@@ -66,6 +66,7 @@ class StylizeJob(Job):
         self.messages: list[str] = []  # the engine's notes (views chosen, Gaussians optimised...)
         self._inputs = (scene, cameras, style_rgb, views)
         self.mask = mask  # [N] bool: the selection this run stylizes (None: every splat)
+        self.n_split: int | None = None  # the splats the object had before the run split some, once it did
         self._lines = ProgressLines(PRINT_INTERVAL)
 
     @classmethod
@@ -148,7 +149,23 @@ class StylizeJob(Job):
         except Exception as error:  # a failed write ends the run; the message reaches the panel
             self._fail(str(error) if isinstance(error, DresgError) else f"{type(error).__name__}: {error}")
 
+    def _split(self, obj, split, parents) -> None:
+        """Give the object the run's split splats the first time a stage or the result has them; from then on the
+        counts, the selection and the colours the run started from are the split scene's."""
+        if parents is None or self.n_split is not None:
+            return
+        split_splats(obj, split, parents)
+        self.n_split = self.n_splats
+        self.n_splats = len(parents)
+        self._before = self._before[parents]
+        if self.mask is not None:
+            self.mask = self.mask[parents]
+            self.n_selected = int(self.mask.sum())
+        else:
+            self.n_selected = len(parents)
+
     def _apply_stage(self, obj, update) -> None:
+        self._split(obj, update.split_scene, update.parents)
         write_colors(obj, update.sh_dc)
         self.n_changed = changed_count(self._before, update.sh_dc)
         if update.means is not None:
@@ -174,17 +191,18 @@ class StylizeJob(Job):
         return [message for message in self.messages if isinstance(message, Note)]
 
     def summary(self) -> str:
-        """What the run did, for the operator's report: the splats whose colours it changed (of the selection),
-        those it left and why, and its time."""
+        """What the run did, for the operator's report: the splats whose colours it changed (of the selection, the
+        split's children counted), those it left and why, its time, and the splats a split added."""
         took = format_seconds(self.seconds)
         changed = self.n_changed or 0
         what = "selected splats" if self.mask is not None else "splats"
+        split = "" if self.n_split is None else f"; the split added {self.n_splats - self.n_split:,} splats"
         if changed >= self.n_selected:
-            return f"Stylized {changed:,} {what} in {took}"
+            return f"Stylized {changed:,} {what} in {took}{split}"
         kept = self.n_selected - changed
         line = f"Stylized {changed:,} of the {self.n_selected:,} {what} in {took}; {kept:,} kept their colours"
         unseen = 0 if self.n_fitted is None else self.n_selected - self.n_fitted
-        return line + (f" ({unseen:,} that no active view sees)" if unseen > 0 else "")
+        return line + (f" ({unseen:,} that no active view sees)" if unseen > 0 else "") + split
 
     def _on_end(self) -> None:
         if self.state is JobState.CANCELLED:
@@ -202,6 +220,7 @@ class StylizeJob(Job):
     def _apply_result(self, obj, result) -> None:
         scene = result.scene
         self.n_fitted = result.stylized
+        self._split(obj, scene, result.parents)
         self.n_changed = changed_count(self._before, scene.sh_dc)
         write_colors(obj, scene.sh_dc)
         if self.config.optimize_geometry:

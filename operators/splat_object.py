@@ -23,6 +23,7 @@ Every read or write of the mesh goes through :func:`object_mode`, so it works wi
 import contextlib
 import functools
 
+import bmesh
 import bpy
 import numpy as np
 from mathutils import Matrix
@@ -44,8 +45,20 @@ from .splat_nodes import (
 )
 
 MODIFIER = "Gaussian Splats"
-VALUE_KEYS = {"FLOAT": "value", "INT": "value", "FLOAT_VECTOR": "vector", "FLOAT_COLOR": "color", "QUATERNION": "value"}
-DTYPES = {"INT": np.int32}
+VALUE_KEYS = {
+    "FLOAT": "value",
+    "INT": "value",
+    "BOOLEAN": "value",
+    "INT8": "value",
+    "FLOAT2": "vector",
+    "INT32_2D": "value",
+    "FLOAT_VECTOR": "vector",
+    "FLOAT_COLOR": "color",
+    "BYTE_COLOR": "color_srgb",  # the stored bytes / 255: written back, the same bytes
+    "QUATERNION": "value",
+    "FLOAT4X4": "value",
+}
+DTYPES = {"INT": np.int32, "BOOLEAN": bool, "INT8": np.int8, "INT32_2D": np.int32}
 
 
 def is_splat_object(obj) -> bool:
@@ -131,6 +144,19 @@ def read_attribute(mesh, name: str) -> np.ndarray | None:
     values = np.empty(len(mesh.vertices) * width, dtype=DTYPES.get(attribute.data_type, np.float32))
     attribute.data.foreach_get(VALUE_KEYS[attribute.data_type], values)
     return values.reshape(-1, width) if width > 1 else values
+
+
+def read_point_attributes(mesh) -> list[sm.PointAttribute]:
+    """Every point attribute a split carries to the children: the splat attributes and the user's own, of every
+    type but text; not the positions, nor Blender's internal ones (selection and hidden state: see split_splats)."""
+    out = []
+    for attribute in mesh.attributes:
+        if attribute.domain != "POINT" or attribute.is_internal or attribute.name == "position":
+            continue
+        values = read_attribute(mesh, attribute.name)
+        if values is not None:
+            out.append(sm.PointAttribute(attribute.name, attribute.data_type, values))
+    return out
 
 
 def read_positions(mesh) -> np.ndarray:  # [N, 3]
@@ -283,6 +309,47 @@ def _check_count(obj, n: int) -> None:
 
 
 @in_object_mode
+def split_splats(obj, split: GaussianScene, parents: np.ndarray) -> None:
+    """Give the object the splats a run split (``parents`` [M] into its N splats, ``split`` the split scene): the
+    arrays are :func:`~dresg_addon.blender.splat_mesh.split_attributes`'; a parent's selection, hidden state and
+    vertex group weights go to its children too. Restore Original Colours brings back the N splats."""
+    mesh = obj.data
+    n = len(mesh.vertices)
+    parents = sm.check_parents(parents, n)
+    means, attributes = sm.split_attributes(read_positions(mesh), read_point_attributes(mesh), parents, split)
+    flags = {}
+    for name in ("select", "hide"):
+        flags[name] = np.zeros(n, bool)
+        mesh.vertices.foreach_get(name, flags[name])
+    mesh.vertices.add(len(parents) - n)
+    write_positions(mesh, means)
+    write_attributes(mesh, attributes)
+    for name, values in flags.items():
+        mesh.vertices.foreach_set(name, values[parents])
+    if obj.vertex_groups:
+        weights = {}  # (group index, weight) -> the children that take it
+        for parent, children in sm.children_of(parents, n):
+            for element in mesh.vertices[parent].groups:
+                weights.setdefault((element.group, element.weight), []).append(children)
+        for (group, weight), children in weights.items():
+            obj.vertex_groups[group].add(np.concatenate(children).tolist(), weight, "REPLACE")
+    mesh.update()
+
+
+def _keep_first(mesh, n: int) -> None:
+    """Delete every vertex after the first ``n`` (Blender's mesh API only adds vertices); bmesh keeps every
+    attribute layer, quaternions included, with the vertex groups and selection."""
+    edit = bmesh.new()
+    try:
+        edit.from_mesh(mesh)
+        edit.verts.ensure_lookup_table()
+        bmesh.ops.delete(edit, geom=[edit.verts[i] for i in range(n, len(edit.verts))], context="VERTS")
+        edit.to_mesh(mesh)
+    finally:
+        edit.free()
+
+
+@in_object_mode
 def write_colors(obj, sh_dc: np.ndarray) -> None:  # sh_dc: [N, 3]
     """Write stylized DC colours: kept as they are, and shown (and exported) at the object's strength."""
     mesh = obj.data
@@ -325,9 +392,10 @@ def write_geometry(obj, means: np.ndarray, log_scales: np.ndarray, quats: np.nda
 
 
 @in_object_mode
-def restore_original(obj, mask: np.ndarray | None = None) -> None:
-    """Bring back the imported colours (and geometry, when the optimizer moved it); lossless. With ``mask``
-    only those splats' colours: the rest keep their stylized ones."""
+def restore_original(obj, mask: np.ndarray | None = None) -> int:
+    """Bring back the imported colours, geometry and splats (a split's children go, its parents are whole again);
+    lossless. With ``mask`` only those splats' colours: the rest keep their stylized ones (and a split stays), unless
+    that leaves no stylized colour. Returns how many splats were removed."""
     mesh = obj.data
     stylized = read_attribute(mesh, sm.SH_DC_STYLIZED)
     if mask is not None and stylized is not None:
@@ -335,25 +403,26 @@ def restore_original(obj, mask: np.ndarray | None = None) -> None:
         write_attributes(mesh, [sm.PointAttribute(sm.SH_DC_STYLIZED, "FLOAT_VECTOR", stylized)])
         if not np.array_equal(stylized, read_attribute(mesh, sm.SH_DC_ORIGINAL)):
             apply_strength(obj)
-            return
-    write_attributes(
-        mesh, sm.color_attributes(read_attribute(mesh, sm.SH_DC_ORIGINAL), read_attribute(mesh, sm.OPACITY))
-    )
-    if has_stylized_colors(obj):
-        mesh.attributes.remove(mesh.attributes[sm.SH_DC_STYLIZED])
-    means = read_attribute(mesh, sm.MEANS_ORIGINAL)
+            return 0
+    removed = 0
+    parent = read_attribute(mesh, sm.PARENT)
+    if parent is not None:
+        imported = sm.imported_count(parent)
+        removed = len(mesh.vertices) - imported
+        if removed:
+            _keep_first(mesh, imported)
+    means, attributes = sm.restored_attributes(lambda name: read_attribute(mesh, name))
     if means is not None:
         write_positions(mesh, means)
-        write_attributes(
-            mesh,
-            sm.shape_attributes(read_attribute(mesh, sm.LOG_SCALE_ORIGINAL), read_attribute(mesh, sm.QUAT_ORIGINAL)),
-        )
-        for name in (sm.MEANS_ORIGINAL, sm.LOG_SCALE_ORIGINAL, sm.QUAT_ORIGINAL):
+    write_attributes(mesh, attributes)
+    for name in sm.RUN_ATTRIBUTES:
+        if mesh.attributes.get(name) is not None:
             mesh.attributes.remove(mesh.attributes[name])
     obj["dresg_sh_rest"] = "keep"
     if "dresg_stylize_settings" in obj:
         del obj["dresg_stylize_settings"]
     mesh.update()
+    return removed
 
 
 # --- The Geometry Nodes preview's modifier (its node tree: splat_nodes.py) ------------------------

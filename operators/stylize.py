@@ -208,7 +208,7 @@ class DRESG_OT_cancel_stylize(CancelJobOperator, bpy.types.Operator):
 
 
 class DRESG_OT_restore_colors(bpy.types.Operator):
-    """Bring back the colours (and geometry) the splats had when imported"""
+    """Bring back the colours and geometry the splats had when imported (splats a run split are whole again)"""
 
     bl_idname = "dresg.restore_colors"
     bl_label = "Restore Original Colours"
@@ -238,13 +238,17 @@ class DRESG_OT_restore_colors(bpy.types.Operator):
                 mask = None
                 if self.selection_only:
                     mask = selection_mask(obj, selection, settings.selection_group)
-                restore_original(obj, mask)
                 count = len(obj.data.vertices) if mask is None else int(mask.sum())
+                removed = restore_original(obj, mask)
         except DresgError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         tag_redraw()
-        self.report({"INFO"}, f"Restored the original colours of {count} splats")
+        if removed:
+            kept = len(obj.data.vertices)
+            self.report({"INFO"}, f"Restored the {kept:,} imported splats: the {removed:,} split from them are gone")
+        else:
+            self.report({"INFO"}, f"Restored the original colours of {count:,} splats")
         return {"FINISHED"}
 
 

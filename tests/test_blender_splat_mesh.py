@@ -141,3 +141,105 @@ def test_disk_frames_move_the_smallest_axis_to_z():
     # The permuted frame with the permuted scales is the same ellipsoid.
     s = np.diag([0.1, 2.0, 3.0])
     np.testing.assert_allclose(px @ np.diag([2.0, 3.0, 0.1]) ** 2 @ px.T, s**2, atol=1e-12)
+
+
+# --- A run that split splats (issue 45) ------------------------------------------------------------------------
+
+
+def split_of(scene: GaussianScene, parents: np.ndarray, seed: int = 1) -> GaussianScene:
+    """A stand-in for refine's split scene: the parents' colours and SH, new geometry for every splat."""
+    other = random_scene(n=len(parents), rest=0, normals=False, seed=seed)
+    return GaussianScene(
+        means=other.means,
+        log_scales=other.log_scales,
+        quats=scene.quats[parents],
+        opacity_logits=other.opacity_logits,
+        sh_dc=scene.sh_dc[parents],
+    )
+
+
+def mesh_after_split(means, attributes, parents, split):
+    """(positions, name -> PointAttribute) of a mesh after :func:`sm.split_attributes`."""
+    means, out = sm.split_attributes(means, attributes, parents, split)
+    return means, {a.name: a for a in out}
+
+
+def test_a_split_gives_the_children_their_parents_attributes_and_the_split_geometry():
+    scene = random_scene(n=6)
+    attributes = sm.scene_attributes(scene, seed=3)
+    stylized = np.random.default_rng(5).normal(size=(6, 3)).astype(np.float32)
+    user = np.array([True, False, True, False, False, True])
+    attributes += [
+        sm.PointAttribute(sm.SH_DC_STYLIZED, "FLOAT_VECTOR", stylized),
+        sm.PointAttribute("painted", "BOOLEAN", user),
+    ]
+    parents = np.array([0, 1, 2, 3, 4, 5, 1, 1, 4, 1])
+    split = split_of(scene, parents)
+    before = {a.name: a.values for a in attributes}
+    means, after = mesh_after_split(scene.means, attributes, parents, split)
+
+    np.testing.assert_array_equal(means, split.means)
+    np.testing.assert_array_equal(after[sm.LOG_SCALE].values, split.log_scales)
+    np.testing.assert_array_equal(after[sm.OPACITY_LOGIT].values, split.opacity_logits)
+    np.testing.assert_array_equal(after[sm.OPACITY].values, sm.sigmoid(split.opacity_logits))
+    np.testing.assert_array_equal(after[sm.COLOR].values[:, 3], sm.sigmoid(split.opacity_logits))
+    for name in (sm.SH_DC_ORIGINAL, sm.SH_DC_STYLIZED, sm.sh_rest_name(7), sm.NORMAL, "dresg_extra_label", "painted"):
+        np.testing.assert_array_equal(after[name].values, before[name][parents], err_msg=name)
+        assert after[name].data_type == {a.name: a for a in attributes}[name].data_type
+    # The imported geometry, kept for Restore, and the parents.
+    np.testing.assert_array_equal(after[sm.MEANS_ORIGINAL].values, scene.means[parents])
+    np.testing.assert_array_equal(after[sm.OPACITY_LOGIT_ORIGINAL].values, scene.opacity_logits[parents])
+    np.testing.assert_array_equal(after[sm.QUAT_ORIGINAL].values, scene.quats[parents])
+    np.testing.assert_array_equal(after[sm.PARENT].values, parents)
+    # Ranks: a permutation in the parents' order, each parent's children right after it.
+    rank, old = after[sm.DISPLAY_RANK].values, before[sm.DISPLAY_RANK]
+    assert sorted(rank) == list(range(10)) and rank.dtype == np.int32
+    np.testing.assert_array_equal(np.argsort(rank[:6]), np.argsort(old))
+    by_rank = np.argsort(rank)
+    assert list(by_rank[rank[1] : rank[1] + 4]) == [1, 6, 7, 9]
+    assert list(by_rank[rank[4] : rank[4] + 2]) == [4, 8]
+
+
+def test_a_second_split_indexes_the_split_mesh_and_restore_gives_back_the_imported_splats_exactly():
+    scene = random_scene(n=5)
+    imported = sm.scene_attributes(scene, seed=2)
+    first = np.array([0, 1, 2, 3, 4, 2, 2])
+    means, after = mesh_after_split(scene.means, imported, first, split_of(scene, first))
+    split_once = sm.scene_from_attributes(means, store(list(after.values())))
+    second = np.array([0, 1, 2, 3, 4, 5, 6, 6, 5, 0])  # a child of the first split is split again, and splat 0
+    means, after = mesh_after_split(means, list(after.values()), second, split_of(split_once, second, seed=4))
+    np.testing.assert_array_equal(after[sm.PARENT].values, first[second])
+    np.testing.assert_array_equal(after[sm.SH_DC_ORIGINAL].values, scene.sh_dc[first[second]])
+    np.testing.assert_array_equal(after[sm.MEANS_ORIGINAL].values, scene.means[first[second]])
+
+    # Restore: the imported splats lead the mesh; cut to them, their arrays are the import's.
+    n = sm.imported_count(after[sm.PARENT].values)
+    assert n == 5
+    cut = store([sm.PointAttribute(a.name, a.data_type, a.values[:n]) for a in after.values()])
+    restored_means, restored = sm.restored_attributes(cut)
+    np.testing.assert_array_equal(restored_means, scene.means)
+    restored = {a.name: a.values for a in restored}
+    for item in imported:
+        if item.name in restored:
+            np.testing.assert_array_equal(restored[item.name], item.values, err_msg=item.name)
+    assert {sm.COLOR, sm.OPACITY, sm.OPACITY_LOGIT, sm.DISPLAY_RANK, sm.LOG_SCALE, sm.QUAT} <= restored.keys()
+    for name in (sm.sh_rest_name(0), sm.NORMAL, "dresg_extra_id"):  # never changed: kept by the cut
+        np.testing.assert_array_equal(cut(name), {a.name: a.values for a in imported}[name])
+
+
+def test_parents_that_do_not_fit_the_mesh_are_refused_in_one_line():
+    for parents in (np.array([0, 1]), np.array([0, 2, 2, 1]), np.array([0, 1, 2, 3]), np.array([0.0, 1, 2, 1])):
+        with pytest.raises(SceneFormatError, match="parent indices"):
+            sm.check_parents(parents, 3)
+    np.testing.assert_array_equal(sm.check_parents(np.array([0, 1, 2, 0], np.int32), 3), [0, 1, 2, 0])
+    assert sm.imported_count(np.array([0, 1, 2, 1, 1])) == 3
+    assert sm.imported_count(np.arange(4)) == 4
+    for edited in (np.array([0, 2, 1, 1]), np.array([0, 1, 2, 4, 1]), np.array([1, 0])):  # splats deleted or added
+        with pytest.raises(SceneFormatError, match="Restore cannot tell the imported ones"):
+            sm.imported_count(edited)
+
+
+def test_children_of_lists_each_split_splats_appended_children():
+    got = sm.children_of(np.array([0, 1, 2, 3, 2, 0, 2]), 4)
+    assert [(p, list(c)) for p, c in got] == [(0, [5]), (2, [4, 6])]
+    assert sm.children_of(np.arange(3), 3) == []

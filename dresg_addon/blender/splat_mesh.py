@@ -23,7 +23,21 @@ name                       type          content
 ``dresg_sh_rest_KK``       FLOAT_VECTOR  SH rest coefficient KK (RGB), KK = 00..K-1, when present
 ``dresg_normal``           FLOAT_VECTOR  normals, when the file has them
 ``dresg_extra_NAME``       FLOAT / INT   any other per-splat property of the file
+``dresg_sh_dc_stylized``   FLOAT_VECTOR  the last runs' colours at full strength (absent before a run)
+``dresg_*_original``       (as above)    positions, log-scales, quaternions and opacity logits as imported,
+                                         kept once a run moved or split the splats (Restore)
+``dresg_parent``           INT           after a split: the splat each one comes from (module notes)
 =========================  ============  ==========================================================
+
+A run that splits splats wider than the painting's marks (``method/refine.py``) returns more splats than the
+mesh has, each with its parent ([M] indices: ``parents[i] == i`` for the N splats the mesh has, a split splat's
+slot holding its centre child, the other children after them). :func:`split_attributes` gives the mesh M points:
+the children take every attribute from their parent (the original and stylized colours too, so Strength blends
+and Restore brings back exactly their parent's imported colour, and the user's own attributes), the geometry is
+the split scene's, and ``dresg_parent`` says which splat of the mesh as it was before its first split each one
+comes from; that mesh's splats lead in their order, so :func:`imported_count` finds them and Restore keeps only
+them, with the geometry the first split kept (:func:`restored_attributes`). The display ranks keep each splat's
+place, its children right after it, so a display cap shows whole splats and a Restore gives back the imported ranks.
 
 The colour attribute is scene-linear because Blender treats float colours as linear; 3DGS colours
 are display (sRGB-encoded) values, so with the Standard view transform the viewport shows them as
@@ -59,8 +73,25 @@ EXTRA_PREFIX = "dresg_extra_"
 MEANS_ORIGINAL = "dresg_means_original"
 LOG_SCALE_ORIGINAL = "dresg_log_scale_original"
 QUAT_ORIGINAL = "dresg_quat_original"
+OPACITY_LOGIT_ORIGINAL = "dresg_opacity_logit_original"
+PARENT = "dresg_parent"
+# What a full Restore removes: the run's colours, the kept geometry and the split's parents.
+RUN_ATTRIBUTES = (SH_DC_STYLIZED, MEANS_ORIGINAL, LOG_SCALE_ORIGINAL, QUAT_ORIGINAL, OPACITY_LOGIT_ORIGINAL, PARENT)
 
-WIDTHS = {"FLOAT": 1, "INT": 1, "FLOAT_VECTOR": 3, "FLOAT_COLOR": 4, "QUATERNION": 4}
+# Values per point of each Blender attribute type (the user's attributes of any type carry over a split).
+WIDTHS = {
+    "FLOAT": 1,
+    "INT": 1,
+    "BOOLEAN": 1,
+    "INT8": 1,
+    "FLOAT2": 2,
+    "INT32_2D": 2,
+    "FLOAT_VECTOR": 3,
+    "FLOAT_COLOR": 4,
+    "BYTE_COLOR": 4,
+    "QUATERNION": 4,
+    "FLOAT4X4": 16,
+}
 _INT_EXTRA_KINDS = "iub"  # extras of these numpy kinds are stored as INT attributes
 
 
@@ -230,6 +261,109 @@ def scene_from_attributes(
         normals=None if normals is None else np.ascontiguousarray(normals, dtype=np.float32).reshape(n, 3),
         extras=scene_extras,
     )
+
+
+def check_parents(parents, n: int) -> np.ndarray:
+    """A run's [M] parent indices (``StylizeResult.parents``) as int64, checked against a mesh of ``n`` splats:
+    SceneFormatError unless the first ``n`` are ``0..n-1`` and the rest index them."""
+    parents = np.asarray(parents)
+    m = parents.shape[0] if parents.ndim == 1 else 0
+    if parents.ndim != 1 or parents.dtype.kind not in "iu" or m < n:
+        raise SceneFormatError(f"the split's parent indices ({parents.shape}, {parents.dtype}) do not fit {n} splats")
+    parents = parents.astype(np.int64)
+    if not (np.array_equal(parents[:n], np.arange(n)) and (parents[n:] >= 0).all() and (parents[n:] < n).all()):
+        raise SceneFormatError(f"the split's parent indices do not start with the mesh's {n} splats in order")
+    return parents
+
+
+def split_display_rank(rank: np.ndarray, parents: np.ndarray) -> np.ndarray:
+    """[M] int32: ranks 0..M-1 in the order of each parent's rank, a parent first and its children right after it."""
+    order = np.lexsort((np.arange(len(parents)), np.asarray(rank)[parents]))
+    out = np.empty(len(parents), np.int32)
+    out[order] = np.arange(len(parents), dtype=np.int32)
+    return out
+
+
+def split_attributes(
+    means: np.ndarray, current: list[PointAttribute], parents: np.ndarray, split: GaussianScene
+) -> tuple[np.ndarray, list[PointAttribute]]:
+    """[M, 3] positions and the M splats' attributes after a run split the mesh's N splats (module notes).
+
+    ``means`` [N, 3] and ``current`` are the mesh's positions and point attributes (the internal ones, such as
+    selection, excluded); ``parents`` [M] the run's; ``split`` the split scene, whose geometry (positions, scales,
+    rotations, opacities) the splats take. Every other attribute is the parent's; the first split keeps the
+    geometry it replaces as ``*_original`` (a later one carries them, with ``dresg_parent``, from the parents)."""
+    n = means.shape[0]
+    parents = check_parents(parents, n)
+    if len(split) != len(parents):
+        raise SceneFormatError(f"the split scene has {len(split)} splats for {len(parents)} parent indices")
+    have = {item.name: item for item in current}
+
+    def required(name: str) -> np.ndarray:
+        if name not in have:
+            raise SceneFormatError(f"the object has no '{name}' attribute: it was not imported as Gaussian splats")
+        return have[name].values
+
+    kept = [
+        PointAttribute(MEANS_ORIGINAL, "FLOAT_VECTOR", np.asarray(means, np.float32)),
+        PointAttribute(LOG_SCALE_ORIGINAL, "FLOAT_VECTOR", required(LOG_SCALE)),
+        PointAttribute(QUAT_ORIGINAL, "QUATERNION", required(QUAT)),
+        PointAttribute(OPACITY_LOGIT_ORIGINAL, "FLOAT", required(OPACITY_LOGIT)),
+        PointAttribute(PARENT, "INT", np.arange(n, dtype=np.int32)),
+    ]
+    have |= {item.name: item for item in kept if item.name not in have}
+    out = {name: PointAttribute(name, item.data_type, item.values[parents]) for name, item in have.items()}
+    opacity = sigmoid(split.opacity_logits)
+    new = color_attributes(required(SH_DC)[parents], opacity) + shape_attributes(split.log_scales, split.quats)
+    new += [
+        PointAttribute(OPACITY, "FLOAT", opacity),
+        PointAttribute(OPACITY_LOGIT, "FLOAT", np.asarray(split.opacity_logits, np.float32)),
+        PointAttribute(DISPLAY_RANK, "INT", split_display_rank(required(DISPLAY_RANK), parents)),
+    ]
+    out |= {item.name: item for item in new}
+    return np.asarray(split.means, np.float32), list(out.values())
+
+
+def children_of(parents: np.ndarray, n: int) -> list[tuple[int, np.ndarray]]:
+    """(parent, the indices of its children after the first ``n``) per split splat, for what is copied per parent
+    (vertex group weights)."""
+    parents = np.asarray(parents)
+    order = np.argsort(parents[n:], kind="stable")
+    split, starts = np.unique(parents[n:][order], return_index=True)
+    groups = np.split(n + order, starts[1:]) if len(order) else []
+    return [(int(p), children) for p, children in zip(split, groups, strict=True)]
+
+
+def imported_count(parent: np.ndarray) -> int:
+    """How many splats the mesh had before its first split (``dresg_parent``): those leading it whose parent is
+    themselves. SceneFormatError when the mesh no longer has that shape (splats deleted or added since)."""
+    parent = np.asarray(parent)
+    leading = parent == np.arange(len(parent))
+    n = len(parent) if leading.all() else int(np.argmin(leading))
+    if (n == 0 and len(parent)) or not ((parent[n:] >= 0).all() and (parent[n:] < n).all()):
+        raise SceneFormatError(
+            "the splats were added or deleted after the stylization split them, so Restore cannot tell the "
+            "imported ones; undo the edit (Ctrl+Z) or import the file again"
+        )
+    return n
+
+
+def restored_attributes(read: Reader) -> tuple[np.ndarray | None, list[PointAttribute]]:
+    """The imported positions ([N, 3], None when no run moved them) and the attributes a full Restore writes, read
+    from a mesh that holds only the imported splats (a split one cut to :func:`imported_count`): the imported
+    colours, geometry and opacities, and, after a split, display ranks in the imported order."""
+    logits = read(OPACITY_LOGIT_ORIGINAL)
+    opacity = read(OPACITY) if logits is None else sigmoid(logits)
+    attributes = color_attributes(read(SH_DC_ORIGINAL), opacity)
+    if logits is not None:
+        attributes += [PointAttribute(OPACITY, "FLOAT", opacity), PointAttribute(OPACITY_LOGIT, "FLOAT", logits)]
+    means = read(MEANS_ORIGINAL)
+    if means is not None:
+        attributes += shape_attributes(read(LOG_SCALE_ORIGINAL), read(QUAT_ORIGINAL))
+    rank = read(DISPLAY_RANK)
+    if read(PARENT) is not None and rank is not None:  # the imported ranks' order, kept by every split
+        attributes.append(PointAttribute(DISPLAY_RANK, "INT", np.argsort(np.argsort(rank)).astype(np.int32)))
+    return means, attributes
 
 
 def image_from_pixels(pixels: np.ndarray, width: int, height: int, channels: int) -> np.ndarray:

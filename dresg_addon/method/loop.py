@@ -710,4 +710,6 @@ class Stylization:
             scene.log_scales if geometry else None,
             scene.quats if geometry else None,
             images,
+            self.parents,
+            scene if self.parents is not None else None,
         )
