@@ -154,7 +154,7 @@ class StylizeJob(Job):
         counts, the selection and the colours the run started from are the split scene's."""
         if parents is None or self.n_split is not None:
             return
-        split_splats(obj, split, parents)
+        split_splats(obj, split, parents, self.n_splats)
         self.n_split = self.n_splats
         self.n_splats = len(parents)
         self._before = self._before[parents]

@@ -166,7 +166,7 @@ def test_a_second_run_keeps_the_first_runs_colours_and_splits_the_split_object_a
     k = len(again.scene)
     assert k == len(obj.data.vertices) > m
     after = _mesh(addon, obj)
-    kept = np.flatnonzero(~second[again.parents[:m]])  # splats of the first run's mesh the second did not select
+    kept = np.flatnonzero(~second)  # splats of the first run's mesh the second did not select
     assert (kept >= n).sum() > 0  # children of the first run among them
     np.testing.assert_array_equal(after[sm.SH_DC_STYLIZED][kept], after_first[sm.SH_DC_STYLIZED][kept])
     parent = result.parents[again.parents]
@@ -239,3 +239,39 @@ def test_the_operator_says_the_split_keeps_the_edit_mode_selection_and_undo_brin
         assert bpy.ops.object.mode_set(mode="OBJECT") == {"FINISHED"}
         assert len(obj.data.vertices) == n
         np.testing.assert_array_equal(_flags(obj, "select"), selected)
+
+
+def test_a_run_cancelled_after_a_split_stage_keeps_it_and_restore_still_gives_back_the_import(addon, tmp_path):
+    """Geometry offsets on, two stages, cancelled once the first is shown: the object holds that stage's split splats
+    and moved geometry, consistently; the geometry kept is the import's, so Restore is still exact."""
+    ops = addon.operators
+    obj = _import(tmp_path, _scene())
+    n = len(obj.data.vertices)
+    imported = _mesh(addon, obj)
+    preset_run = addon.dresg_addon.method.config.preset_run
+    config, plan = preset_run("preview", split_cap=0.5, **{**RUN, "stages": 2, "optimize_geometry": True})
+    run = ops.job.StylizeJob(obj, ops.splat_object.stylized_scene(obj), _cameras(addon), _style(), config, plan=plan)
+    apply = run._apply_stage
+
+    def apply_then_cancel(target, update):
+        apply(target, update)
+        run.cancel()
+
+    run._apply_stage = apply_then_cancel
+    run.make_current()
+    run.run_blocking()
+    assert run.state is ops.tasks.JobState.CANCELLED and run.stages_applied == 1, run.error
+    after = _mesh(addon, obj)
+    parent = after[sm.PARENT]
+    assert len(obj.data.vertices) == len(parent) > n
+    np.testing.assert_array_equal(after[sm.MEANS_ORIGINAL], imported["position"][parent])
+    np.testing.assert_array_equal(after[sm.SH_DC_ORIGINAL], imported[sm.SH_DC][parent])
+    assert np.abs(after["position"][n:] - imported["position"][parent[n:]]).max(1).min() > 0  # children moved apart
+    np.testing.assert_allclose(after[sm.COLOR], sm.display_colors(after[sm.SH_DC], after[sm.OPACITY]), atol=1e-6)
+    np.testing.assert_array_equal(after[sm.OPACITY], sm.sigmoid(after[sm.OPACITY_LOGIT]))
+
+    assert bpy.ops.dresg.restore_colors() == {"FINISHED"}
+    restored = _mesh(addon, obj)
+    assert len(obj.data.vertices) == n and restored.keys() == imported.keys()
+    for name, values in imported.items():
+        np.testing.assert_array_equal(restored[name], values, err_msg=name)
