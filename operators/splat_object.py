@@ -300,8 +300,7 @@ def has_stylized_colors(obj) -> bool:
     return obj.data.attributes.get(sm.SH_DC_STYLIZED) is not None
 
 
-def check_count(obj, n: int) -> None:
-    """SceneFormatError unless the object has ``n`` splats, those of the run writing to it."""
+def _check_count(obj, n: int) -> None:
     if len(obj.data.vertices) != n:
         raise SceneFormatError(
             f"'{obj.name}' now has {len(obj.data.vertices)} vertices but the run has {n} splats "
@@ -311,13 +310,12 @@ def check_count(obj, n: int) -> None:
 
 @in_object_mode
 def split_splats(obj, split: GaussianScene, parents: np.ndarray, count: int) -> None:
-    """Give the object the splats a run split (``parents`` [M] into its N splats, ``split`` the split scene): the
-    arrays are :func:`~dresg_addon.blender.splat_mesh.split_attributes`'; a parent's selection, hidden state and
-    vertex group weights go to its children too. Restore Original Colours brings back the N splats. ``count``: the
-    splats the run started from (N)."""
+    """Give the object the splats a run split from its ``count`` splats (``parents`` [M] index them, ``split`` is the
+    split scene): the arrays :func:`~dresg_addon.blender.splat_mesh.split_attributes` gives; a parent's selection,
+    hidden state and vertex group weights go to its children too. Restore Original Colours brings back the N."""
     mesh = obj.data
-    check_count(obj, count)
-    n = len(mesh.vertices)
+    _check_count(obj, count)
+    n = count
     parents = sm.check_parents(parents, n)
     means, attributes = sm.split_attributes(read_positions(mesh), read_point_attributes(mesh), parents, split)
     flags = {}
@@ -356,7 +354,7 @@ def _keep_first(mesh, n: int) -> None:
 def write_colors(obj, sh_dc: np.ndarray) -> None:  # sh_dc: [N, 3]
     """Write stylized DC colours: kept as they are, and shown (and exported) at the object's strength."""
     mesh = obj.data
-    check_count(obj, sh_dc.shape[0])
+    _check_count(obj, sh_dc.shape[0])
     write_attributes(mesh, [sm.PointAttribute(sm.SH_DC_STYLIZED, "FLOAT_VECTOR", np.asarray(sh_dc, np.float32))])
     apply_strength(obj)
 
@@ -379,7 +377,7 @@ def write_geometry(obj, means: np.ndarray, log_scales: np.ndarray, quats: np.nda
     """Write optimised geometry (means [N, 3], log-scales [N, 3], quaternions [N, 4]); the imported
     geometry is kept in ``*_original`` attributes the first time, so it can be restored."""
     mesh = obj.data
-    check_count(obj, means.shape[0])
+    _check_count(obj, means.shape[0])
     if mesh.attributes.get(sm.MEANS_ORIGINAL) is None:
         write_attributes(
             mesh,

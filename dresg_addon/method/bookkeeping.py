@@ -314,8 +314,8 @@ class StageUpdate:
     log_scales: np.ndarray | None
     quats: np.ndarray | None
     images: dict[str, dict[str, np.ndarray]]  # view name -> render / proposal / target / residual [H, W, 3]
-    # When the run split splats (refine.py): [N] the input splat each splat comes from, and the split scene, whose
-    # geometry (opacities included) the children take; None otherwise
+    # When the run split splats (refine.py): [N] the input splat each of these comes from (StylizeResult.parents),
+    # and the split scene, whose geometry (opacities included) the children take; None otherwise
     parents: np.ndarray | None = None
     split_scene: GaussianScene | None = None
 
