@@ -59,6 +59,9 @@ class Plan:
     # Splats the active views draw wider than the strokes are split first, adding at most this share of the scene
     # (method/refine.py); 0: the scene keeps its splats.
     split_cap: float = 0.0
+    # Each splat carries where in the painting its colour comes from, and the views' targets take their marks from
+    # it (method/marks.py); only with a backend that says where its proposals' pixels come from.
+    carry_marks: bool = False
     ablation: Ablation = Ablation()
 
     def __post_init__(self) -> None:

@@ -56,6 +56,7 @@ from .fitting import (
     splat_footprint,
 )
 from .losses import FitLossWeights
+from .marks import CarriedMarks, carried_targets, paint_view, vote_view
 from .medium import medium_for
 from .optim import FitOptimizerSettings, make_fit_optimizer, scene_extent
 from .refine import split_wide_splats
@@ -217,6 +218,7 @@ class _StageWork:
     losses: list[float] = field(default_factory=list)
     renders: list = field(default_factory=list)  # the views before the fit, then after it
     painted: ViewsInTurn | None = None  # ink: the views' painting in turn of the stage's proposals
+    fields: list = field(default_factory=list)  # where in the painting each view's proposal comes from (marks.py)
     closure: dict = field(default_factory=dict)  # target gap, fit residual, optimum, share closed, movement
     fitted_seconds: float = 0.0
     distance: float = 0.0
@@ -474,6 +476,7 @@ class Stylization:
                 self.states[i], stage.timesteps, self.style, self.contents[i], self.coverages[i], **kwargs
             )
             guides.proposed(i, self.backend.decode(self.states[i]).detach().float().cpu())
+            work.fields.append(self.backend.last_field)
             work.energies.append(energies[-1])
         if self.gammas[stage.index - 1] == 1.0:  # the targets are the proposals: what the guides painted is the fit
             work.painted = guides.painting()
@@ -500,7 +503,38 @@ class Stylization:
                 "target": targets[-1].permute(1, 2, 0).numpy(),
                 "residual": (0.5 + 0.5 * residual).clamp(0, 1).permute(1, 2, 0).numpy(),
             }
+        if self.carries_marks(stage):
+            painted, targets = self._carried_targets(targets)
+            for name, render, target in zip(self.names, painted, targets):
+                self.work.images[name]["marks"] = render.permute(1, 2, 0).numpy()
+                self.work.images[name]["target"] = target.permute(1, 2, 0).numpy()
         return targets
+
+    def carries_marks(self, stage: Stage) -> bool:
+        """Whether this stage's marks come from the splats (marks.py): the plan asks for it, the backend said where its
+        proposals come from, the colours are fitted alone (geometry frozen) and the stage proposes at full detail."""
+        return (
+            self.plan.carry_marks
+            and self.renderer.fast is not None
+            and all(f is not None for f in self.work.fields)
+            and self.backend.full_detail(stage.timesteps)
+        )
+
+    def _carried_targets(self, targets: list[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """Each splat's colour from the painting where the view that sees its mark best places it; each target's fine
+        band from the splats so coloured (marks.carried_targets). Returns the views' renders of those colours too."""
+        splats = self.state.seen.numel()
+        votes = [
+            vote_view(fast.contributions(), fast.shape, field, splats)
+            for fast, field in zip(self.renderer.fast, self.work.fields)
+        ]
+        marks = CarriedMarks.from_votes(votes)
+        source = self.work.fields[0].source
+        views = [paint_view(fast.contributions(), fast.shape, self.size, marks, source) for fast in self.renderer.fast]
+        painted, masks = [image for image, _ in views], [mask for _, mask in views]
+        sigma = self.entry.stroke_sigma(self.config.stroke_size) * self.fit_scale()
+        self.hooks.say(f"marks carried by {int(marks.carried.sum())} of {splats} splats")
+        return painted, carried_targets(targets, painted, self.alphas, sigma, masks)
 
     def fit(self, stage: Stage, targets: list[torch.Tensor]) -> None:
         """Sec. 4.3: multi-view fitting of the seen Gaussians to the targets (Eqs. 16-20); solved to its bounded

@@ -75,6 +75,9 @@ class ProposalBackend(ABC):
     # Whether ``propose`` keeps to a guide (what earlier views proposed, seen from this view), so that
     # views agree; the loop builds guides only for backends that use them.
     takes_guides: bool = False
+    # Where in the painting the last proposal's pixels come from (synth.PaintingField), for a backend that copies
+    # the painting's pixels; None for one that does not (its marks cannot be carried by the splats).
+    last_field = None
 
     def full_detail(self, timesteps: Sequence[int]) -> bool:
         """Whether a stage of these timesteps proposes at the backend's full detail.

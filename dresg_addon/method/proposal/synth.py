@@ -506,6 +506,66 @@ def recolor(image: torch.Tensor, color_map: ColorMap, coverage: torch.Tensor | N
     return out if coverage is None else torch.where(coverage > COVERED, out, image)
 
 
+@dataclass(frozen=True)
+class _Matches:
+    """Where a pass took its patches from: the grid (ys x xs corners at ``level``, ``kept`` of them matched) and each
+    kept patch's top-left pixel in the library's source (the style at that level, its mirror image below it)."""
+
+    level: int
+    size: int
+    ys: torch.Tensor  # [a]
+    xs: torch.Tensor  # [b]
+    kept: torch.Tensor  # [a b] bool
+    corners: torch.Tensor  # [kept] flat index into the level's source, rows of ``width``
+    width: int
+
+
+@dataclass(frozen=True)
+class PaintingField:
+    """Where in the painting each pixel of a proposal comes from: per pixel at the proposal size, a pixel of
+    ``source`` (the painting as the backend was given it, its mirror image below it: [3, 2 Hs, Ws]); ``valid`` is
+    False where no matched patch covers the pixel. Each pixel takes the patch whose centre is nearest, so the field is
+    piecewise a translation, one per patch."""
+
+    rows: torch.Tensor  # [H, W] long, in [0, 2 Hs)
+    cols: torch.Tensor  # [H, W] long, in [0, Ws)
+    valid: torch.Tensor  # [H, W] bool
+    source: torch.Tensor  # [3, 2 Hs, Ws]
+
+
+def _nearest_centre(starts: torch.Tensor, size: int, length: int) -> torch.Tensor:  # -> [length] index into starts
+    centres = starts.double() + (size - 1) / 2.0
+    return torch.bucketize(torch.arange(length, dtype=torch.float64), (centres[1:] + centres[:-1]) / 2.0)
+
+
+def painting_field(matched: _Matches, style: torch.Tensor, height: int, width: int) -> PaintingField:
+    """The :class:`PaintingField` of a pass's matches at ``height`` x ``width`` (the full resolution); ``style`` is the
+    painting at full resolution [3, Hs, Ws]. A pass at a coarser level is scaled up: its pixels' coordinates times
+    2^level, plus the full-resolution pixel's place inside the level's pixel."""
+    scale = 2**matched.level
+    h, w = height // scale, width // scale
+    y = torch.arange(height).clamp_max(h * scale - 1) // scale
+    x = torch.arange(width).clamp_max(w * scale - 1) // scale
+    iy, ix = _nearest_centre(matched.ys, matched.size, h)[y], _nearest_centre(matched.xs, matched.size, w)[x]
+    grid = iy[:, None] * matched.xs.numel() + ix[None, :]  # [H, W] patch of the full grid
+    slot = torch.full((matched.kept.numel(),), -1, dtype=torch.long)
+    slot[matched.kept] = torch.arange(int(matched.kept.sum()))
+    patch = slot[grid]
+    valid = patch >= 0
+    corner = matched.corners[patch.clamp_min(0)]
+    style_height, style_width = style.shape[1:]
+    level_height = max(1, style_height // scale)  # the level's style: the source's upper half
+    source_rows = corner // matched.width
+    mirrored = (source_rows >= level_height).long()
+    row = source_rows - mirrored * level_height + (y - matched.ys[iy])[:, None]
+    col = corner % matched.width + (x - matched.xs[ix])[None, :]
+    sub_y, sub_x = (torch.arange(height) - y * scale)[:, None], (torch.arange(width) - x * scale)[None, :]
+    rows = (row * scale + sub_y).clamp(0, style_height - 1) + mirrored * style_height
+    cols = (col * scale + sub_x).clamp(0, style_width - 1)
+    source = torch.cat([style, style.flip(-1)], 1)
+    return PaintingField(rows, cols, valid, source)
+
+
 @dataclass
 class _StageColors:
     """The colour maps that one stage's proposals share (``SynthBackend.prepare_stage``)."""
@@ -552,6 +612,7 @@ class SynthBackend(ProposalBackend):
         self._libraries: OrderedDict = OrderedDict()
         self._contents: OrderedDict = OrderedDict()
         self._stage: _StageColors | None = None
+        self._matched: _Matches | None = None
         self._levels: int | None = None  # the pyramid of the last prepared stage's views
 
     @staticmethod
@@ -707,7 +768,7 @@ class SynthBackend(ProposalBackend):
         if guide is not None:
             start = _blend(start, guide[0], guide[1])
         x = downsample(start, level)
-        energies = []
+        energies, self._matched = [], None
         for j, ((pass_level, size), timestep) in enumerate(zip(plan, timesteps)):
             if pass_level != level:
                 level = pass_level
@@ -716,6 +777,7 @@ class SynthBackend(ProposalBackend):
             noise = s.noise * math.sqrt(noise_fraction) if j == 0 else 0.0
             x, energy = self._pass(x, style, content, coverage, keys, level, size, noise, generator, guide)
             energies.append(energy)
+        self.last_field = None if self._matched is None else painting_field(self._matched, style, height, width)
         # A stage that ends at a coarse level proposes its coarse bands only: none of the render's finer texture
         # (the capture's) goes back on; the finer stages paint it from the painting.
         x = upsample(x, height, width)
@@ -738,14 +800,19 @@ class SynthBackend(ProposalBackend):
         filled = estimate if cover is None else fill_uncovered(estimate, cover, sigma=max(1.0, size / 2))
         probe = filled + noise * torch.randn(filled.shape, generator=generator) if noise > 0 else filled
         offset = tuple(int(v) for v in torch.randint(0, gap, (2,), generator=generator))
-        index = patch_index(*patch_grid(h, w, size, gap, offset), size, w)
+        ys, xs = patch_grid(h, w, size, gap, offset)
+        index = patch_index(ys, xs, size, w)
+        kept = torch.ones(index.shape[0], dtype=torch.bool)
         if cover is not None:  # patches with nothing covered take no part
-            index = index[cover.reshape(-1)[index].amax(1) > COVERED]
+            kept = cover.reshape(-1)[index].amax(1) > COVERED
+            index = index[kept]
         if index.shape[0] == 0:
             return estimate, 0.0
         # E-step: nearest style patches; M-step: robust aggregation, content fusion, colour transfer.
         queries = library.project(extract_patches(probe, index))
-        matches = library.patches(nearest_patches(queries, library.projected, s.search_chunk))
+        rows = nearest_patches(queries, library.projected, s.search_chunk)
+        self._matched = _Matches(level, size, ys, xs, kept, library.corners[rows], library.width)
+        matches = library.patches(rows)
         energy = (extract_patches(filled, index) - matches).norm(dim=1).pow(s.robust_power).mean() / matches.shape[1]
         synthesis = robust_aggregate(estimate, matches, index, s.robust_power, s.irls_iterations)
         content_low, weight = self._content(content, style, coverage, keys, level)

@@ -1,0 +1,194 @@
+"""Marks the views agree on: each splat carries where in the painting its colour comes from.
+
+Fitting one set of colours to views whose strokes do not line up averages the strokes away: a least-squares blend
+of N layouts keeps about 1/sqrt(N) of their contrast. Patch-based video stylization keeps marks coherent by carrying
+the correspondence into the painting instead of the colour (Benard et al. 2013, Jamriska et al. 2019); here the
+splats carry it.
+
+A backend that copies the painting's pixels says where each pixel of its proposal comes from
+(``ProposalBackend.last_field``, a :class:`~.proposal.synth.PaintingField`). Each splat then votes, over the pixels
+a view draws it on and weighted by its blend weight there, for the translation from the view into the painting:
+the field is piecewise a translation (one per copied patch), so the vote is a mode, not a mean
+(:func:`vote_view`). The view whose vote has the most weight behind it (the one that sees the splat's mark most
+clearly) sets the splat's painting coordinate, and its colour is the painting's there, averaged over the splat's
+own footprint in that view (:class:`CarriedMarks`). Every view then draws the same marks: rendered from the splats,
+they line up by construction.
+
+What the painting's raw pixels do not hold (the scene's forms and light, the palette's regions) is in the
+proposals' coarse bands, which the views agree on; so each view's target keeps its coarse bands and takes its fine
+band, below the stroke scale, from the splats' painted colours as that view renders them (:func:`carried_targets`).
+The colour solve over the views then levels what is left between them, the seams (Waechter et al. 2014 level
+theirs the same way), instead of averaging the marks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from .proposal.synth import PaintingField, low_pass
+
+COVERED = 0.5  # alpha above which a pixel's fine band comes from the splats' marks
+OWNER_SHARE = 0.5  # a splat's marks from the first view whose vote is at least this share of the strongest's
+
+
+@dataclass
+class ViewVote:
+    """One view's vote for each splat (columns of the view's colour map): where in the painting its centre lies, its
+    colour from the painting there, and how much blend weight agreed on it (0: the view drew it on no pixel its field
+    covers)."""
+
+    coordinates: torch.Tensor  # [N, 2] (row, column) of the painting source, the splat's centre in this view moved
+    colors: torch.Tensor  # [N, 3]
+    agreed: torch.Tensor  # [N] the blend weight of the splat's pixels that voted for the winning translation
+
+
+def vote_view(
+    contributions: tuple[torch.Tensor, torch.Tensor, torch.Tensor],  # (fit pixel, splat, T alpha) of a view
+    fit_shape: tuple[int, int],  # (H, W) of the view's render
+    field: PaintingField,  # at the proposal size
+    splats: int,
+) -> ViewVote:
+    """Each splat's mode translation into the painting over its pixels in this view, weighted by blend weight, and its
+    colour: the painting's under that translation, averaged over the splat's pixels with the same weights."""
+    pixel, splat, weight = contributions
+    height, width = fit_shape
+    rows_p, cols_p = field.rows.shape
+    y = (pixel // width) * rows_p // height  # the fit pixel's proposal pixel
+    x = (pixel % width) * cols_p // width
+    flat = y * cols_p + x
+    valid = field.valid.reshape(-1)[flat] & (weight > 0)
+    source_rows, source_cols = field.source.shape[1:]
+    dy = field.rows.reshape(-1)[flat] - y  # in [-rows_p, source_rows)
+    dx = field.cols.reshape(-1)[flat] - x  # in [-cols_p, source_cols)
+    span = source_cols + cols_p + 1
+    codes = (source_rows + rows_p + 1) * span
+    key = splat[valid] * codes + (dy[valid] + rows_p) * span + (dx[valid] + cols_p)
+    keys, inverse = torch.unique(key, return_inverse=True)
+    votes = torch.zeros(keys.numel(), dtype=torch.float64).index_add_(0, inverse, weight[valid].double())
+    owner = keys // codes
+    best = torch.zeros(splats, dtype=torch.float64).scatter_reduce_(0, owner, votes, "amax", include_self=True)
+    winner = votes >= best[owner]
+    # Ties go to the smallest key, so the vote does not depend on the order of the pixels.
+    chosen = torch.full((splats,), torch.iinfo(torch.long).max, dtype=torch.long)
+    chosen.scatter_reduce_(0, owner[winner], keys[winner], "amin", include_self=True)
+    voted = best > 0
+    code = torch.where(voted, chosen % codes, torch.zeros_like(chosen))
+    shift_y, shift_x = code // span - rows_p, code % span - cols_p
+    # The painting under the winning translation, over every pixel the view draws the splat on.
+    sy = (y + shift_y[splat]).clamp(0, source_rows - 1)
+    sx = (x + shift_x[splat]).clamp(0, source_cols - 1)
+    painted = field.source.reshape(3, -1)[:, sy * source_cols + sx].T.double()  # [K, 3]
+    total = torch.zeros(splats, 3, dtype=torch.float64).index_add_(0, splat, painted * weight[:, None].double())
+    drawn = torch.zeros(splats, dtype=torch.float64).index_add_(0, splat, weight.double())
+    colors = (total / drawn.clamp_min(1e-12)[:, None]).float().clamp(0.0, 1.0)
+    centres = splat_centres(contributions, fit_shape, (rows_p, cols_p), splats)
+    coordinates = centres + torch.stack([shift_y, shift_x], 1).to(centres.dtype)
+    return ViewVote(coordinates, colors, torch.where(voted, best, torch.zeros_like(best)).float())
+
+
+def splat_centres(
+    contributions: tuple[torch.Tensor, torch.Tensor, torch.Tensor], fit_shape: tuple[int, int], size, splats: int
+) -> torch.Tensor:  # -> [N, 2] float64 (row, column) in pixels of ``size`` (H, W); 0 for splats the view does not draw
+    """Each splat's centre as the view draws it: the blend-weighted mean of its pixels' positions."""
+    pixel, splat, weight = contributions
+    height, width = fit_shape
+    scale = torch.tensor([size[0] / height, size[1] / width], dtype=torch.float64)
+    position = torch.stack([pixel // width, pixel % width], 1).double() + 0.5
+    w = weight.double()[:, None]
+    total = torch.zeros(splats, 2, dtype=torch.float64).index_add_(0, splat, position * w)
+    drawn = torch.zeros(splats, 1, dtype=torch.float64).index_add_(0, splat, w)
+    return total / drawn.clamp_min(1e-12) * scale - 0.5
+
+
+@dataclass
+class CarriedMarks:
+    """Each splat's colour from the painting, set by the view whose vote agreed most (``owner``, -1: none)."""
+
+    coordinates: torch.Tensor  # [N, 2] the painting source's (row, column) at the splat's centre
+    colors: torch.Tensor  # [N, 3]
+    owner: torch.Tensor  # [N] long
+
+    @classmethod
+    def from_votes(cls, votes: Sequence[ViewVote], share: float = OWNER_SHARE) -> CarriedMarks:
+        """Each splat's owner is the first view (in the views' order) whose vote has at least ``share`` of the most
+        weight any view's has: views take whole surfaces in turn, so neighbouring splats share an owner and its
+        marks run on across them (the strongest view alone changes from splat to splat and speckles the marks)."""
+        agreed = torch.stack([v.agreed for v in votes])  # [V, N]
+        strongest = agreed.max(0).values
+        eligible = (agreed >= share * strongest[None]) & (agreed > 0)
+        owner = eligible.float().argmax(0)  # the first eligible view
+        every = torch.arange(owner.numel())
+        colors = torch.stack([v.colors for v in votes])[owner, every]
+        coordinates = torch.stack([v.coordinates for v in votes])[owner, every]
+        return cls(coordinates, colors, torch.where(strongest > 0, owner, torch.full_like(owner, -1)))
+
+    @property
+    def carried(self) -> torch.Tensor:  # [N] bool
+        return self.owner >= 0
+
+
+def paint_view(
+    contributions: tuple[torch.Tensor, torch.Tensor, torch.Tensor],  # the view's (fit pixel, splat, T alpha)
+    fit_shape: tuple[int, int],
+    size: tuple[int, int],  # (H, W) of the proposal, whose pixels the painting's coordinates are in
+    marks: CarriedMarks,
+    source: torch.Tensor,  # [3, 2 Hs, Ws] the painting and its mirror image (PaintingField.source)
+) -> tuple[torch.Tensor, torch.Tensor]:  # -> [3, H, W] at the fit size, [H, W] bool where it is painted
+    """The painting as the splats carry it, seen from this view: each pixel takes the painting at the coordinate of the
+    splat drawn most there, moved by the pixel's place against that splat's centre in this view. Inside a surface one
+    view owns, that is the owner's copy of the painting, translated; no splat's footprint blurs it."""
+    pixel, splat, weight = contributions
+    height, width = fit_shape
+    carried = marks.carried[splat] & (weight > 0)
+    pixel, splat, weight = pixel[carried], splat[carried], weight[carried]
+    strongest = torch.zeros(height * width).scatter_reduce_(0, pixel, weight, "amax", include_self=True)
+    top = weight >= strongest[pixel]
+    dominant = torch.full((height * width,), -1, dtype=torch.long)
+    dominant.scatter_reduce_(0, pixel[top], splat[top], "amax", include_self=True)  # ties: the larger index
+    painted = dominant >= 0
+    centres = splat_centres((pixel, splat, weight), fit_shape, size, marks.colors.shape[0])
+    where = torch.nonzero(painted)[:, 0]
+    owner = dominant[where]
+    scale = torch.tensor([size[0] / height, size[1] / width], dtype=torch.float64)
+    position = (torch.stack([where // width, where % width], 1).double() + 0.5) * scale - 0.5
+    coordinate = (marks.coordinates[owner].double() + position - centres[owner]).round().long()
+    rows, cols = source.shape[1:]
+    half = rows // 2
+    lower = (marks.coordinates[owner, 0] >= half).long() * half  # stay in the half (painting or mirror) it is in
+    row = torch.minimum(torch.maximum(coordinate[:, 0], lower), lower + half - 1)
+    col = coordinate[:, 1].clamp(0, cols - 1)
+    image = torch.zeros(3, height * width)
+    image[:, where] = source.reshape(3, -1)[:, row * cols + col]
+    return image.reshape(3, height, width), painted.reshape(height, width)
+
+
+def fine_band(image: torch.Tensor, coverage: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``image`` [3, H, W] minus its blur of ``sigma`` pixels over the covered pixels (``coverage`` [H, W] weights,
+    normalised, so the background does not bleed into the silhouette's band)."""
+    weight = coverage[None].clamp(0.0, 1.0)
+    blurred = low_pass(image * weight, sigma) / low_pass(weight, sigma).clamp_min(1e-4)
+    return image - blurred
+
+
+def carried_targets(
+    targets: Sequence[torch.Tensor],  # V x [3, H, W]
+    painted: Sequence[torch.Tensor],  # V x [3, H, W]: each view's render of the splats' carried colours
+    alphas: Sequence[torch.Tensor],  # V x [H, W]
+    sigma: float,  # the stroke scale, in fit pixels
+    masks: Sequence[torch.Tensor] | None = None,  # V x [H, W] bool: where ``painted`` holds marks (None: everywhere)
+) -> list[torch.Tensor]:
+    """Each view's target with its band finer than ``sigma`` replaced by the painted render's, on covered pixels:
+    the coarse bands (forms, light, regions) stay the view's proposal's, the marks are the splats' own."""
+    out = []
+    for v, (target, render, alpha) in enumerate(zip(targets, painted, alphas)):
+        covered = alpha > COVERED
+        if masks is not None:
+            covered = covered & masks[v]
+        alpha = alpha * covered
+        covered = covered.to(target.dtype)[None]
+        swapped = target - fine_band(target, alpha, sigma) + fine_band(render, alpha, sigma)
+        out.append((target + covered * (swapped - target)).clamp(0.0, 1.0))
+    return out
