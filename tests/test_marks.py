@@ -8,7 +8,7 @@ import torch
 
 from dresg_addon.method.config import preset_run
 from dresg_addon.method.loop import Stylization, stylize
-from dresg_addon.method.marks import CarriedMarks, ViewVote, carried_targets, fine_band, vote_view
+from dresg_addon.method.marks import CarriedMarks, ViewVote, carried_targets, fine_band, paint_view, vote_view
 from dresg_addon.method.proposal.synth import PaintingField, SynthBackend, low_pass
 from dresg_addon.raster.rasterizer import render_scene
 from dresg_addon.scene.camera import Camera, look_at
@@ -67,30 +67,53 @@ def test_each_splat_takes_the_translation_most_of_its_weight_votes_for_not_the_m
     splat = torch.tensor([0, 0, 0, 1, 1, 1])
     weight = torch.tensor([0.5, 0.2, 0.3, 0.4, 0.3, 0.3])
     vote = vote_view((pixel, splat, weight), (10, 10), field, 3)
-    expected = []
-    for index, pixels, shift in ((0, [16, 17, 27], (3, 5)), (1, [20, 21, 26], (12, 5))):
-        w = weight[splat == index]
-        sampled = torch.stack([source[:, p // 10 + shift[0], p % 10 + shift[1]] for p in pixels])
-        expected.append((sampled * w[:, None]).sum(0) / w.sum())
-    assert torch.allclose(vote.colors[:2], torch.stack(expected), atol=1e-6)
     assert torch.allclose(vote.agreed, torch.tensor([1.0, 0.7, 0.0]))
-    # Splat 0's centre (the weighted mean of its pixels (1, 6), (1, 7), (2, 7)) moved by its translation (3, 5).
-    assert torch.allclose(vote.coordinates[0], torch.tensor([1.3 + 3, 6.5 + 5], dtype=torch.float64))
+    # Each centre (the weighted mean of its pixels) moved by its mode translation: (3, 5) and (12, 5).
+    centres = torch.tensor([[1.3, 6.5], [2.0, 2.1]], dtype=torch.float64)
+    assert torch.allclose(vote.coordinates[:2], centres + torch.tensor([[3.0, 5.0], [12.0, 5.0]], dtype=torch.float64))
 
 
 def test_a_field_at_half_the_fit_size_votes_by_the_proposal_pixel():
     source = torch.rand(3, 30, 30, generator=torch.Generator().manual_seed(1))
     field = translation_field(5, 5, source, (2, 2))  # the proposal at 5x5, the render at 10x10
     vote = vote_view((torch.tensor([99]), torch.tensor([0]), torch.tensor([1.0])), (10, 10), field, 1)
-    assert torch.allclose(vote.colors[0], source[:, 4 + 2, 4 + 2])
+    # Fit pixel (9, 9) is proposal pixel 4.25 (centres: (9 + 0.5) / 2 - 0.5), moved by (2, 2).
+    assert torch.allclose(vote.coordinates[0], torch.tensor([6.25, 6.25], dtype=torch.float64))
+
+
+def test_each_view_is_painted_as_the_splats_carry_the_painting_so_its_strokes_follow_the_surface():
+    source = torch.rand(3, 40, 20, generator=torch.Generator().manual_seed(2))  # a painting 20x20 and its mirror
+    # Four splats a pixel each, at (1, 1), (1, 2), (2, 1), (2, 2) in view A and three pixels to the right in view B.
+    splat = torch.arange(4)
+    in_a = torch.tensor([11, 12, 21, 22])
+    marks = CarriedMarks(torch.tensor([[5.0, 5.0], [5.0, 6.0], [6.0, 5.0], [6.0, 6.0]], dtype=torch.float64), splat)
+    one = torch.ones(4)
+    image_a, painted_a = paint_view((in_a, splat, one), (10, 10), (10, 10), marks, source)
+    image_b, painted_b = paint_view((in_a + 3, splat, one), (10, 10), (10, 10), marks, source)
+    assert painted_a.sum() == 4 and torch.equal(painted_b.reshape(-1).nonzero()[:, 0], in_a + 3)
+    assert torch.equal(image_a[:, 1:3, 1:3], source[:, 5:7, 5:7])
+    assert torch.equal(image_b[:, 1:3, 4:6], image_a[:, 1:3, 1:3])
+    # A splat drawn over several pixels paints the painting around its coordinate, not one colour.
+    wide, painted = paint_view(
+        (torch.tensor([0, 1, 2]), torch.zeros(3, dtype=torch.long), one[:3]),
+        (1, 3),
+        (1, 3),
+        CarriedMarks(torch.tensor([[3.0, 8.0]], dtype=torch.float64), torch.tensor([0])),
+        source,
+    )
+    assert torch.equal(wide[:, 0], source[:, 3, 7:10])
+    # A coordinate in the mirror image (the lower half) stays in it: the pixel above the centre would be row 19.
+    mirror = CarriedMarks(torch.tensor([[20.0, 5.0]], dtype=torch.float64), torch.tensor([0]))
+    three = (torch.arange(3), torch.zeros(3, dtype=torch.long), one[:3])
+    column, _ = paint_view(three, (3, 1), (3, 1), mirror, source)
+    assert torch.equal(column[:, :, 0], source[:, [20, 20, 21], 5])
 
 
 def test_owners_take_whole_surfaces_in_turn_and_unvoted_splats_have_none():
-    colors = [torch.full((4, 3), float(v)) for v in range(3)]
+    coordinates = [torch.full((4, 2), 10.0 * v, dtype=torch.float64) for v in range(3)]
     agreed = [torch.tensor([1.0, 0.2, 0.0, 0.0]), torch.tensor([1.5, 1.0, 0.0, 0.0]), torch.tensor([0.1, 0.4, 2.0, 0])]
-    marks = CarriedMarks.from_votes([ViewVote(c[:, :2] * 10, c, a) for c, a in zip(colors, agreed)], share=0.5)
+    marks = CarriedMarks.from_votes([ViewVote(c, a) for c, a in zip(coordinates, agreed)], share=0.5)
     assert marks.owner.tolist() == [0, 1, 2, -1]
-    assert marks.colors[:3, 0].tolist() == [0.0, 1.0, 2.0]
     assert marks.coordinates[:3, 0].tolist() == [0.0, 10.0, 20.0]
     assert marks.carried.tolist() == [True, True, True, False]
 

@@ -9,10 +9,12 @@ A backend that copies the painting's pixels says where each pixel of its proposa
 (``ProposalBackend.last_field``, a :class:`~.proposal.synth.PaintingField`). Each splat then votes, over the pixels
 a view draws it on and weighted by its blend weight there, for the translation from the view into the painting:
 the field is piecewise a translation (one per copied patch), so the vote is a mode, not a mean
-(:func:`vote_view`). The view whose vote has the most weight behind it (the one that sees the splat's mark most
-clearly) sets the splat's painting coordinate, and its colour is the painting's there, averaged over the splat's
-own footprint in that view (:class:`CarriedMarks`). Every view then draws the same marks: rendered from the splats,
-they line up by construction.
+(:func:`vote_view`). Its painting coordinate is its centre moved by that translation. The first view (in the views'
+order) whose vote has at least half the weight of the strongest owns the splat (:class:`CarriedMarks`): views take
+whole surfaces in turn, so neighbouring splats share an owner and its marks run on across them. Each view is then
+painted as the splats carry the painting (:func:`paint_view`): a pixel takes the painting at the coordinate of the
+splat drawn most there, moved by the pixel's place against that splat's centre. Inside a surface one view owns that
+is the owner's copy of the painting, translated, in every view: the strokes sit on the surface.
 
 What the painting's raw pixels do not hold (the scene's forms and light, the palette's regions) is in the
 proposals' coarse bands, which the views agree on; so each view's target keeps its coarse bands and takes its fine
@@ -36,12 +38,10 @@ OWNER_SHARE = 0.5  # a splat's marks from the first view whose vote is at least 
 
 @dataclass
 class ViewVote:
-    """One view's vote for each splat (columns of the view's colour map): where in the painting its centre lies, its
-    colour from the painting there, and how much blend weight agreed on it (0: the view drew it on no pixel its field
-    covers)."""
+    """One view's vote for each splat (columns of the view's colour map): where in the painting its centre lies, and
+    how much blend weight agreed on it (0: the view drew it on no pixel its field covers)."""
 
-    coordinates: torch.Tensor  # [N, 2] (row, column) of the painting source, the splat's centre in this view moved
-    colors: torch.Tensor  # [N, 3]
+    coordinates: torch.Tensor  # [N, 2] (row, column) of the painting source: the splat's centre moved by its vote
     agreed: torch.Tensor  # [N] the blend weight of the splat's pixels that voted for the winning translation
 
 
@@ -51,8 +51,8 @@ def vote_view(
     field: PaintingField,  # at the proposal size
     splats: int,
 ) -> ViewVote:
-    """Each splat's mode translation into the painting over its pixels in this view, weighted by blend weight, and its
-    colour: the painting's under that translation, averaged over the splat's pixels with the same weights."""
+    """Each splat's mode translation into the painting over its pixels in this view, weighted by blend weight, and the
+    painting coordinate of its centre under it."""
     pixel, splat, weight = contributions
     height, width = fit_shape
     rows_p, cols_p = field.rows.shape
@@ -77,16 +77,9 @@ def vote_view(
     voted = best > 0
     code = torch.where(voted, chosen % codes, torch.zeros_like(chosen))
     shift_y, shift_x = code // span - rows_p, code % span - cols_p
-    # The painting under the winning translation, over every pixel the view draws the splat on.
-    sy = (y + shift_y[splat]).clamp(0, source_rows - 1)
-    sx = (x + shift_x[splat]).clamp(0, source_cols - 1)
-    painted = field.source.reshape(3, -1)[:, sy * source_cols + sx].T.double()  # [K, 3]
-    total = torch.zeros(splats, 3, dtype=torch.float64).index_add_(0, splat, painted * weight[:, None].double())
-    drawn = torch.zeros(splats, dtype=torch.float64).index_add_(0, splat, weight.double())
-    colors = (total / drawn.clamp_min(1e-12)[:, None]).float().clamp(0.0, 1.0)
     centres = splat_centres(contributions, fit_shape, (rows_p, cols_p), splats)
     coordinates = centres + torch.stack([shift_y, shift_x], 1).to(centres.dtype)
-    return ViewVote(coordinates, colors, torch.where(voted, best, torch.zeros_like(best)).float())
+    return ViewVote(coordinates, torch.where(voted, best, torch.zeros_like(best)).float())
 
 
 def splat_centres(
@@ -105,10 +98,9 @@ def splat_centres(
 
 @dataclass
 class CarriedMarks:
-    """Each splat's colour from the painting, set by the view whose vote agreed most (``owner``, -1: none)."""
+    """Each splat's painting coordinate, set by the view that owns it (``owner``, -1: none; :meth:`from_votes`)."""
 
     coordinates: torch.Tensor  # [N, 2] the painting source's (row, column) at the splat's centre
-    colors: torch.Tensor  # [N, 3]
     owner: torch.Tensor  # [N] long
 
     @classmethod
@@ -120,10 +112,8 @@ class CarriedMarks:
         strongest = agreed.max(0).values
         eligible = (agreed >= share * strongest[None]) & (agreed > 0)
         owner = eligible.float().argmax(0)  # the first eligible view
-        every = torch.arange(owner.numel())
-        colors = torch.stack([v.colors for v in votes])[owner, every]
-        coordinates = torch.stack([v.coordinates for v in votes])[owner, every]
-        return cls(coordinates, colors, torch.where(strongest > 0, owner, torch.full_like(owner, -1)))
+        coordinates = torch.stack([v.coordinates for v in votes])[owner, torch.arange(owner.numel())]
+        return cls(coordinates, torch.where(strongest > 0, owner, torch.full_like(owner, -1)))
 
     @property
     def carried(self) -> torch.Tensor:  # [N] bool
@@ -149,7 +139,7 @@ def paint_view(
     dominant = torch.full((height * width,), -1, dtype=torch.long)
     dominant.scatter_reduce_(0, pixel[top], splat[top], "amax", include_self=True)  # ties: the larger index
     painted = dominant >= 0
-    centres = splat_centres((pixel, splat, weight), fit_shape, size, marks.colors.shape[0])
+    centres = splat_centres((pixel, splat, weight), fit_shape, size, marks.owner.numel())
     where = torch.nonzero(painted)[:, 0]
     owner = dominant[where]
     scale = torch.tensor([size[0] / height, size[1] / width], dtype=torch.float64)
