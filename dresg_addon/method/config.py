@@ -194,9 +194,10 @@ def check_run_settings(config: StylizeConfig, plan: Plan | None = None) -> None:
 # (docs/decisions/004-no-post-stage.md), stopping once the look settles.
 PAPER_PLAN = Plan()
 PLANS: dict[str, Plan] = {
-    "standard": Plan(updates_per_stage=1, post_steps=0, early_stop=0.01, best_views=4.0),
+    # The synthesis's marks carried by the splats (docs/decisions/015-carried-marks.md).
+    "standard": Plan(updates_per_stage=1, post_steps=0, early_stop=0.01, best_views=4.0, carry_marks=True),
     # Half the stages and views of standard and the joint fit alone: the best views cost it 43 -> 73 s on the bonsai.
-    "preview": Plan(updates_per_stage=1, fit_steps=15, post_steps=0, early_stop=0.01),
+    "preview": Plan(updates_per_stage=1, fit_steps=15, post_steps=0, early_stop=0.01, carry_marks=True),
     "paper": PAPER_PLAN,
     "cpu": PAPER_PLAN,
 }
