@@ -342,7 +342,8 @@ class Ink(Medium):
             say(f"ink: one stage of {entry.ink_passes} synthesis passes, coarse to fine, the views drawing in turn")
             config = replace(config, stages=1)
             plan = replace(plan, updates_per_stage=entry.ink_passes, schedule="fixed-1")
-        return config, plan
+        # The views draw the splats in turn (ViewsInTurn), which is how ink's lines agree; carried marks are paint's.
+        return config, replace(plan, carry_marks=False)
 
     def recolor(self, colors):
         return self.ramp.apply(colors)
