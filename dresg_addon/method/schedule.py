@@ -74,8 +74,8 @@ class Stage:
     """One feedback stage n of F (Algorithm 1), as the loop hands it to a proposal backend.
 
     The paper's schedule is written in DDIM timesteps, which the sd15 backend runs; a backend with its own
-    coarse-to-fine ladder (synth) reads only where the stage lies in the run: ``index`` of ``stages``,
-    ``updates``, ``start`` and ``end``.
+    coarse-to-fine ladder (synth) reads only where the stage lies in the run: ``index`` of ``stages``, and
+    its ``updates``.
     """
 
     index: int  # n, 1-based
@@ -94,16 +94,6 @@ class Stage:
     def updates(self) -> int:
         """S: the stage's proposal updates (latent steps, or synthesis passes)."""
         return len(self.timesteps)
-
-    @property
-    def start(self) -> float:
-        """The run's progress when the stage starts, in [0, 1): (n - 1) / F."""
-        return (self.index - 1) / self.stages
-
-    @property
-    def end(self) -> float:
-        """The run's progress when the stage ends, in (0, 1]: n / F."""
-        return self.index / self.stages
 
 
 def stage_timesteps(

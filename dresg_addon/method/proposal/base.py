@@ -2,7 +2,7 @@
 
 Every backend maps an image to a state (``encode``), decodes a state to an image (``decode``) and
 ``propose``s: it updates a view's state ``stage.updates`` times in a stage (a :class:`..schedule.Stage`: its
-index of the run's stages, its DDIM timesteps and its share of the run), given the style image, the view's
+index of the run's stages and its DDIM timesteps), given the style image, the view's
 content image and the render's coverage (alpha). Two kinds implement it:
 
 - :class:`AttentionBackend` (``sd15``): a latent with self-attention Q/K/V features at a timestep;
