@@ -43,9 +43,9 @@ def main() -> int:
     proposal, started = content, time.perf_counter()
     for stage in stage_timesteps(args.stages, args.updates):
         backend.prepare_stage([proposal], style, [content], [None])
-        state, energies = backend.propose(backend.encode(proposal), stage.timesteps, style, content)
+        state, energies = backend.propose(backend.encode(proposal), stage, style, content)
         proposal = backend.decode(state)
-        print(f"stage {stage.index:2d} t={stage.state:3d} energy {energies[0]:.4f} -> {energies[-1]:.4f}")
+        print(f"stage {stage.index:2d} energy {energies[0]:.4f} -> {energies[-1]:.4f}")
         if args.every:
             write_image(f"{args.every}{stage.index:02d}.png", to_array(proposal))
     print(f"{args.stages} stages in {time.perf_counter() - started:.1f} s")

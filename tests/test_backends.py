@@ -24,6 +24,7 @@ from dresg_addon.method.backends import (
 )
 from dresg_addon.method.config import StylizeConfig, check_run_settings, preset
 from dresg_addon.method.proposal.synth import SynthBackend, SynthSettings
+from dresg_addon.method.schedule import stage_timesteps
 from dresg_addon.util.errors import ConfigError
 
 # --- every backend declares itself ------------------------------------------------------------------------
@@ -128,7 +129,7 @@ def test_the_synth_backend_gets_the_same_settings_and_proposes_the_same_pixels(c
     proposals = []
     for backend in (built, before):
         backend.prepare_stage([content], style, [content], [None])
-        proposals.append(backend.propose(backend.encode(content), (901, 601), style, content)[0])
+        proposals.append(backend.propose(backend.encode(content), stage_timesteps(1, 2)[0], style, content)[0])
     assert torch.equal(proposals[0], proposals[1])
 
 

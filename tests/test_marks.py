@@ -10,10 +10,14 @@ from dresg_addon.method.config import preset_run
 from dresg_addon.method.loop import Stylization, stylize
 from dresg_addon.method.marks import CarriedMarks, ViewVote, carried_targets, fine_band, paint_view, vote_view
 from dresg_addon.method.proposal.synth import PaintingField, SynthBackend, low_pass
+from dresg_addon.method.schedule import stage_timesteps
 from dresg_addon.raster.rasterizer import render_scene
 from dresg_addon.scene.camera import Camera, look_at
 from dresg_addon.scene.gaussians import GaussianScene
 from dresg_addon.scene.warp import warp_to
+
+
+COARSE, FINE = stage_timesteps(12, 1)[0], stage_timesteps(12, 1)[-1]  # standard's first stage and its last
 
 
 def painting(height: int = 60, width: int = 80, seed: int = 0) -> torch.Tensor:  # [3, H, W] strokes, not noise
@@ -30,7 +34,7 @@ def test_the_field_points_at_the_painting_pixels_the_proposal_shows():
     style = painting(seed=1)
     content = style[:, 2:58, 5:77].clone()  # a piece of the painting: every patch has an exact match
     backend = SynthBackend(content_weight=0.0, histogram_matching=False, noise=0.0)
-    proposal, _ = backend.propose(content, (1,), style, content)  # the last rung: full resolution
+    proposal, _ = backend.propose(content, FINE, style, content)  # the last rung: full resolution
     field = backend.last_field
     assert field.rows.shape == (56, 72) and bool(field.valid.all())
     assert torch.equal(field.rows[:, 0], torch.arange(2, 58)) and torch.equal(field.cols[0], torch.arange(5, 77))
@@ -43,7 +47,7 @@ def test_a_coarse_pass_gives_a_field_at_full_resolution_and_none_where_nothing_i
     coverage = torch.ones(56, 72)
     coverage[:, :30] = 0.0
     backend = SynthBackend(coarsest_side=24, patch_sizes=(13, 9))
-    backend.propose(content, (951,), style, content, coverage)  # the first rung: the coarsest level
+    backend.propose(content, COARSE, style, content, coverage)  # the first rung: the coarsest level
     field = backend.last_field
     assert backend._matched.level > 0
     assert field.rows.shape == (56, 72) and not bool(field.valid[:, :4].any()) and bool(field.valid[:, 40:].all())

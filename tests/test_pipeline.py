@@ -829,10 +829,10 @@ def test_synth_proposes_full_detail_only_from_its_first_full_resolution_stage():
     from dresg_addon.method.schedule import stage_timesteps
 
     backend = SynthBackend()  # before any stage: the largest pyramid (3 levels), as at the presets' 448x320
-    assert [backend.full_detail(s.timesteps) for s in stage_timesteps(12, 1)] == [False] * 8 + [True] * 4
+    assert [backend.full_detail(s) for s in stage_timesteps(12, 1)] == [False] * 8 + [True] * 4
     backend.prepare_stage([torch.rand(3, 128, 128)], torch.rand(3, 128, 128), [None], [None])  # 2 levels
-    assert [backend.full_detail(s.timesteps) for s in stage_timesteps(4, 1)] == [False, False, True, True]
-    assert all(backend.full_detail(s.timesteps) for s in stage_timesteps(2, 10))  # each stage ends at full size
+    assert [backend.full_detail(s) for s in stage_timesteps(4, 1)] == [False, False, True, True]
+    assert all(backend.full_detail(s) for s in stage_timesteps(2, 10))  # each stage ends at full size
 
 
 def test_early_stop_waits_for_the_stages_that_paint_at_full_detail():

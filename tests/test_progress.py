@@ -233,7 +233,6 @@ def test_the_synth_backend_prices_its_full_resolution_stages_above_its_coarse_on
     from dresg_addon.method.schedule import stage_timesteps
 
     backend = SynthBackend()
-    costs = [backend.relative_cost(stage.timesteps, 320, 448) for stage in stage_timesteps(12, 1)]
+    costs = [backend.relative_cost(stage, 320, 448) for stage in stage_timesteps(12, 1)]
     assert all(math.isfinite(c) and c > 0 for c in costs) and costs == sorted(costs)
     assert costs[-1] == pytest.approx(1.35 * costs[0], rel=0.05)  # 1.28-1.48x, measured
-    assert backend.relative_cost([], 320, 448) == 0.0

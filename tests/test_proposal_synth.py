@@ -22,6 +22,7 @@ from dresg_addon.method.proposal.synth import (
     fuse_content,
     hold_light,
     irls_weights,
+    ladder_entry,
     low_pass,
     nearest_patches,
     pass_scales,
@@ -32,13 +33,15 @@ from dresg_addon.method.proposal.synth import (
     scale_ladder,
     to_style_colors,
 )
+from dresg_addon.method.schedule import stage_timesteps
 from dresg_addon.util.errors import ConfigError, NumericalError
 
 F64 = torch.float64
 # Renders of the backend tests. 56 rows, not 48: a 48-row image trips the patch_grid offset bug with 33
 # patches (see test_patch_grid_offset_beyond_the_last_corner), which would make results seed-dependent.
 H, W = 56, 72
-TIMESTEPS = (951, 501, 1)
+STAGE = stage_timesteps(1, 3)[0]  # one stage of three passes: the ladder's coarsest rung, its middle, its finest
+COARSE, FINE = stage_timesteps(12, 1)[0], stage_timesteps(12, 1)[-1]  # standard's first stage and its last
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -360,14 +363,33 @@ def test_scale_plan_stays_in_range(levels):
     settings = SynthSettings()
     for level, size in scale_ladder(levels, settings):
         assert level in range(levels) and size in settings.patch_sizes
-    for noise_fraction in (0.0, 0.2, 0.5, 0.9, 1.0):
+    for entry in (0.0, 0.2, 0.5, 0.9, 1.0):
         for passes in (1, 2, 3, 6):
-            plan = pass_scales(noise_fraction, passes, levels, settings)
+            plan = pass_scales(entry, passes, levels, settings)
             assert len(plan) == passes
             for level, size in plan:
                 assert level in range(levels) and size in settings.patch_sizes
     for passes in (2, 3, 6):
         assert pass_scales(0.0, passes, levels, settings)[-1][0] == 0
+
+
+def test_the_stages_walk_the_ladder_from_coarse_to_fine():
+    """Stage n of F enters at (n - 1) / (F - 1) of the ladder; its passes run from there to the finest rung."""
+    settings = SynthSettings()
+    ladder = scale_ladder(3, settings)
+
+    def rungs(stages, updates):
+        plans = [pass_scales(ladder_entry(s), updates, 3, settings) for s in stage_timesteps(stages, updates)]
+        return [[ladder.index(p) for p in plan] for plan in plans]
+
+    assert rungs(12, 1) == [[n] for n in range(12)]  # standard: every rung once
+    assert rungs(6, 1) == [[0], [2], [4], [7], [9], [11]]  # preview
+    assert rungs(1, 12) == [list(range(12))]  # ink: one stage of the whole ladder
+    assert rungs(1, 1) == [[11]]  # a lone pass is the run's last
+    paper = rungs(20, 10)
+    assert paper[0] == [0, 1, 2, 4, 5, 6, 8, 9, 10, 11] and paper[-1] == [11] * 10
+    assert all(plan[-1] == 11 and plan == sorted(plan) for plan in paper)
+    assert [ladder_entry(s) for s in stage_timesteps(3, 2)] == [0.0, 0.5, 1.0]
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -496,15 +518,15 @@ def test_a_proposal_holds_the_scenes_shading_with_light_weight():
     def off(image):  # RMS of the image's blurred luminance from the recoloured shading's
         return float((low_pass(image.mean(0, keepdim=True), 4.0)[0, 8:-8, 8:-8] - shading).pow(2).mean().sqrt())
 
-    held, _ = SynthBackend(content_weight=0.3, light_weight=1.0).propose(content, (951,), painting, content)
-    loose, _ = SynthBackend(content_weight=0.3).propose(content, (951,), painting, content)
+    held, _ = SynthBackend(content_weight=0.3, light_weight=1.0).propose(content, COARSE, painting, content)
+    loose, _ = SynthBackend(content_weight=0.3).propose(content, COARSE, painting, content)
     assert bool(torch.isfinite(held).all()) and off(held) < 0.6 * off(loose)
 
 
 def test_a_final_match_gives_a_coarse_stage_the_paintings_palette_at_full_resolution():
     """A stage that ends on a coarse level proposes its upsampled blur; matched once more at full resolution, its
     colours spread as the painting's do."""
-    content, painting = content_image(160, 200), style_image(160, 200)  # two pyramid levels: 951 ends on the coarse one
+    content, painting = content_image(160, 200), style_image(160, 200)  # two levels: COARSE ends on the coarse one
 
     def spread_off(image):  # how far the image's luminance quantiles are from the painting's
         q = torch.linspace(0.05, 0.95, 19)
@@ -512,15 +534,15 @@ def test_a_final_match_gives_a_coarse_stage_the_paintings_palette_at_full_resolu
             (torch.quantile(image.mean(0).flatten(), q) - torch.quantile(painting.mean(0).flatten(), q)).abs().mean()
         )
 
-    plain, _ = SynthBackend().propose(content, (951,), painting, content)
-    matched, _ = SynthBackend(final_match=True).propose(content, (951,), painting, content)
+    plain, _ = SynthBackend().propose(content, COARSE, painting, content)
+    matched, _ = SynthBackend(final_match=True).propose(content, COARSE, painting, content)
     assert bool(torch.isfinite(matched).all()) and float(matched.min()) >= 0.0 and float(matched.max()) <= 1.0
     assert spread_off(matched) < 0.5 * spread_off(plain)
 
 
 @pytest.mark.parametrize("light_weight", [0.0, 1.0])
-@pytest.mark.parametrize("timestep", [1, 951])  # a full-resolution pass, a coarse one
-def test_a_fine_checker_in_the_content_does_not_reach_a_proposal_of_a_smooth_painting(timestep, light_weight):
+@pytest.mark.parametrize("stage", [FINE, COARSE], ids=["fine", "coarse"])  # a full-resolution pass, a coarse one
+def test_a_fine_checker_in_the_content_does_not_reach_a_proposal_of_a_smooth_painting(stage, light_weight):
     y, x = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
     checker = ((y // 2 + x // 2) % 2).float()  # 2-pixel squares: the capture's texture, finer than a stroke
     content = (0.3 + 0.4 * checker).expand(3, -1, -1).contiguous()
@@ -532,9 +554,9 @@ def test_a_fine_checker_in_the_content_does_not_reach_a_proposal_of_a_smooth_pai
         return float(torch.corrcoef(torch.stack(fine))[0, 1])
 
     backend = SynthBackend(content_weight=4.0, content_sigma=2.0, light_weight=light_weight)
-    out, _ = backend.propose(content, (timestep,), painting, content)
+    out, _ = backend.propose(content, stage, painting, content)
     assert bool(torch.isfinite(out).all()) and abs(checker_in(out)) < 0.1
-    every_band, _ = SynthBackend(content_weight=4.0, content_sigma=0.0).propose(content, (timestep,), painting, content)
+    every_band, _ = SynthBackend(content_weight=4.0, content_sigma=0.0).propose(content, stage, painting, content)
     assert checker_in(every_band) > 0.5  # Elad and Milanfar's fusion of every band keeps it
 
 
@@ -619,46 +641,38 @@ def test_bad_shapes_and_non_finite_inputs():
     with pytest.raises(ValueError):
         backend.decode(torch.rand(8, 8))
     with pytest.raises(ValueError):
-        backend.propose(state, TIMESTEPS, style[:1], None)
+        backend.propose(state, STAGE, style[:1], None)
     with pytest.raises(ValueError):
-        backend.propose(state[:, :, :-1], TIMESTEPS, style, state)  # content and state differ
-    with pytest.raises(ValueError):
-        backend.propose(state, (1000,), style, None)  # timestep out of range
+        backend.propose(state[:, :, :-1], STAGE, style, state)  # content and state differ
     nan_state = state.clone()
     nan_state[1, 2, 3] = float("nan")
     with pytest.raises(NumericalError):
-        backend.propose(nan_state, TIMESTEPS, style, None)
+        backend.propose(nan_state, STAGE, style, None)
     inf_style = style.clone()
     inf_style[0, 0, 0] = float("inf")
     with pytest.raises(NumericalError):
-        backend.propose(state, TIMESTEPS, inf_style, None)
+        backend.propose(state, STAGE, inf_style, None)
     with pytest.raises(NumericalError):
-        backend.propose(state, TIMESTEPS, style, nan_state)
+        backend.propose(state, STAGE, style, nan_state)
     coverage = torch.ones(H, W)
     coverage[0, 0] = float("nan")
     with pytest.raises(NumericalError):
-        backend.propose(state, TIMESTEPS, style, None, coverage)
+        backend.propose(state, STAGE, style, None, coverage)
     with pytest.raises(NumericalError):
         backend.encode(nan_state)
-
-
-def test_propose_without_timesteps_returns_the_state():
-    state = content_image()
-    out, energies = SynthBackend().propose(state, (), style_image(), None)
-    assert torch.equal(out, state) and energies == []
 
 
 def test_propose_is_seeded_and_reports_one_energy_per_update():
     state, style = content_image(), style_image()
     backend = SynthBackend(seed=0)
-    first, energies = backend.propose(state, TIMESTEPS, style, state)
+    first, energies = backend.propose(state, STAGE, style, state)
     assert first.shape == state.shape
-    assert len(energies) == len(TIMESTEPS) and all(math.isfinite(e) and e >= 0 for e in energies)
-    again, energies_again = SynthBackend(seed=0).propose(state, TIMESTEPS, style, state)
+    assert len(energies) == STAGE.updates and all(math.isfinite(e) and e >= 0 for e in energies)
+    again, energies_again = SynthBackend(seed=0).propose(state, STAGE, style, state)
     assert torch.equal(first, again) and energies == energies_again
-    cached, _ = backend.propose(state, TIMESTEPS, style, state)  # cached libraries give the same result
+    cached, _ = backend.propose(state, STAGE, style, state)  # cached libraries give the same result
     assert torch.equal(first, cached)
-    other, _ = SynthBackend(seed=1).propose(state, TIMESTEPS, style, state)
+    other, _ = SynthBackend(seed=1).propose(state, STAGE, style, state)
     assert not torch.equal(first, other)
     assert float((first - state).abs().mean()) > 0.01  # it does change the image
 
@@ -668,12 +682,12 @@ def test_propose_never_paints_the_background():
     y, x = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
     radius = ((y - H / 2) ** 2 + (x - W / 2) ** 2).sqrt()
     coverage = (1.0 - (radius - 18.0) / 6.0).clamp(0.0, 1.0)  # a disc with a soft rim, background 0
-    out, energies = SynthBackend().propose(state, TIMESTEPS, style, state, coverage)
+    out, energies = SynthBackend().propose(state, STAGE, style, state, coverage)
     background = coverage < 0.25
     assert bool(background.any()) and bool((coverage > 0.75).any())
     assert torch.equal(out[:, background], state[:, background])
     assert float((out - state)[:, coverage > 0.75].abs().mean()) > 0.01
-    assert len(energies) == len(TIMESTEPS) and all(math.isfinite(e) for e in energies)
+    assert len(energies) == STAGE.updates and all(math.isfinite(e) for e in energies)
 
 
 def _huge_style():
@@ -705,11 +719,11 @@ STIFF = {
 @pytest.mark.parametrize("case", list(STIFF))
 def test_propose_on_stiff_inputs(case, light_weight):
     state, style, content, coverage = STIFF[case]()
-    out, energies = SynthBackend(light_weight=light_weight).propose(state, TIMESTEPS, style, content, coverage)
+    out, energies = SynthBackend(light_weight=light_weight).propose(state, STAGE, style, content, coverage)
     assert out.shape == (3, H, W)
     assert bool(torch.isfinite(out).all())
     assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0
-    assert len(energies) == len(TIMESTEPS) and all(math.isfinite(e) for e in energies)
+    assert len(energies) == STAGE.updates and all(math.isfinite(e) for e in energies)
     if case == "coverage all zeros":
         assert torch.equal(out, state)
 
@@ -717,7 +731,7 @@ def test_propose_on_stiff_inputs(case, light_weight):
 def test_propose_on_a_render_smaller_than_the_largest_patch():
     # 20x24: the 33 patch shrinks to 20 rows (gap 12, last corner 0), so most grid offsets fail.
     state = content_image(20, 24)
-    out, _ = SynthBackend().propose(state, TIMESTEPS, style_image(20, 24), state)
+    out, _ = SynthBackend().propose(state, STAGE, style_image(20, 24), state)
     assert bool(torch.isfinite(out).all())
 
 
@@ -728,7 +742,6 @@ def test_propose_on_a_render_smaller_than_the_largest_patch():
 def test_real_photo_takes_the_painting_texture(shared_data):
     pytest.importorskip("OpenImageIO")
     from dresg_addon.evaluation.metrics import shape_similarity, sliced_wasserstein_patches, texture_kept
-    from dresg_addon.method.schedule import stage_timesteps
     from dresg_addon.util.imageio import read_rgb, resize_image, to_tensor
 
     def read(relative):
@@ -736,9 +749,9 @@ def test_real_photo_takes_the_painting_texture(shared_data):
 
     photo = read("llff_fern/images_8/image000.png")
     style = read("styles/starry_night.jpg")
-    timesteps = stage_timesteps(4, 6)[0].timesteps
-    result, energies = SynthBackend().propose(photo, timesteps, style, photo)
-    assert len(energies) == len(timesteps) and all(math.isfinite(e) for e in energies)
+    stage = stage_timesteps(4, 6)[0]
+    result, energies = SynthBackend().propose(photo, stage, style, photo)
+    assert len(energies) == stage.updates and all(math.isfinite(e) for e in energies)
     swd_photo = float(sliced_wasserstein_patches(photo[None], style)[0])  # measured 0.149
     swd_result = float(sliced_wasserstein_patches(result[None], style)[0])
     assert swd_result < 0.75 * swd_photo
@@ -767,11 +780,11 @@ def test_prepare_stage_fits_one_colour_map_for_every_view():
     backend.prepare_stage([v * 0.9 for v in views], style, views, covers)  # next stage, same content views
     assert backend._stage.contents is content_map  # reused, not refitted
     backend.prepare_stage(views, style, views, covers)
-    out = [backend.propose(v, TIMESTEPS, style, v, c)[0] for v, c in zip(views, covers)]
+    out = [backend.propose(v, STAGE, style, v, c)[0] for v, c in zip(views, covers)]
     again = SynthBackend()
     again.prepare_stage(views, style, views, covers)
     for v, c, first in zip(views, covers, out):
-        torch.testing.assert_close(again.propose(v, TIMESTEPS, style, v, c)[0], first, rtol=0, atol=0)
+        torch.testing.assert_close(again.propose(v, STAGE, style, v, c)[0], first, rtol=0, atol=0)
     assert all(bool(torch.isfinite(o).all()) for o in out)
 
 
@@ -779,29 +792,30 @@ def test_a_stage_for_another_style_falls_back_to_per_view_colours():
     backend = SynthBackend()
     backend.prepare_stage([content_image()], style_image(seed=3), [None], [None])
     state = content_image()
-    ours = backend.propose(state, TIMESTEPS, style_image(), state)[0]
-    fresh = SynthBackend().propose(state, TIMESTEPS, style_image(), state)[0]
+    ours = backend.propose(state, STAGE, style_image(), state)[0]
+    fresh = SynthBackend().propose(state, STAGE, style_image(), state)[0]
     torch.testing.assert_close(ours, fresh, rtol=0, atol=0)  # the prepared maps belong to another style
 
 
 def test_a_guide_holds_the_synthesis_to_it_where_it_has_weight():
     state, style = content_image(), style_image()
     backend = SynthBackend(seed=0)
-    free, _ = backend.propose(state, TIMESTEPS, style, state)
+    free, _ = backend.propose(state, STAGE, style, state)
     guide = style_image(H, W, seed=5)  # strokes somewhere else, as another view might have placed them
     weight = torch.zeros(H, W)
     weight[:, : W // 2] = 8.0
-    held, energies = backend.propose(state, TIMESTEPS, style, state, guide=(guide, weight))
+    held, energies = backend.propose(state, STAGE, style, state, guide=(guide, weight))
     left, right = slice(4, W // 2 - 12), slice(W // 2 + 12, W - 4)  # away from the seam the patches bridge
     assert float((held - guide)[:, :, left].abs().mean()) < 0.5 * float((free - guide)[:, :, left].abs().mean())
     assert float((held - free)[:, :, right].abs().mean()) < float((held - free)[:, :, left].abs().mean())
-    assert len(energies) == len(TIMESTEPS) and torch.isfinite(held).all()
-    unweighted, _ = backend.propose(state, TIMESTEPS, style, state, guide=(guide, torch.zeros(H, W)))
-    torch.testing.assert_close(unweighted, free, atol=1e-5, rtol=0)
+    assert len(energies) == STAGE.updates and torch.isfinite(held).all()
+    unweighted, _ = backend.propose(state, STAGE, style, state, guide=(guide, torch.zeros(H, W)))
+    # Equal but for rounding ((1 + W) X / (1 + W)), which the colour matching spreads: up to 1e-4 over seeds 0-5.
+    torch.testing.assert_close(unweighted, free, atol=2e-4, rtol=0)
     bad = guide.clone()
     bad[0, 0, 0] = float("nan")
     with pytest.raises(NumericalError, match="guide"):
-        backend.propose(state, TIMESTEPS, style, state, guide=(bad, weight))
+        backend.propose(state, STAGE, style, state, guide=(bad, weight))
 
 
 @pytest.mark.parametrize("stroke_size, period", [(1.0, 8.0), (2.0, 16.0)])
@@ -818,8 +832,10 @@ def test_stroke_size_scales_the_marks(stroke_size, period):
     config = StylizeConfig().with_(proposal_width=width, proposal_height=height, stroke_size=stroke_size)
     style = _resize(painting, *style_size(config))  # what the loop hands the backend
     backend = SynthBackend(content_weight=1.0, content_sigma=synth_stroke_sigma(config.stroke_size))
-    out, _ = backend.propose(content, (951, 751, 501, 336, 171, 1), style, content)
+    out, _ = backend.propose(content, stage_timesteps(1, 6)[0], style, content)  # six passes, coarse to fine
     rows = out[0, 8:-8]
     power = torch.fft.rfft(rows - rows.mean(1, keepdim=True), dim=1).abs().square().mean(0)
-    k = int(power[2:].argmax()) + 2  # the dominant horizontal frequency, the content's flat field left out
-    assert width / k == pytest.approx(period) and float(power[k] / power[2:].sum()) > 0.5
+    # Most of the horizontal power (the content's flat field left out) within a bin of the stripes' frequency: 0.65-0.88
+    # over seeds 0-5; the peak bin alone moves a bin with the seed.
+    k = round(width / period)
+    assert float(power[k - 1 : k + 2].sum() / power[2:].sum()) > 0.5

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -106,6 +107,15 @@ def test_fewer_stages_cover_the_same_noise_range():
         assert all(a > b for a, b in zip(flat, flat[1:]))
         assert stages[-1].state == 1
         assert stages[0].timesteps[0] <= 996
+
+
+def test_a_stage_knows_its_place_in_the_run():
+    stages = stage_timesteps(4, 3)
+    assert [(s.index, s.stages, s.updates) for s in stages] == [(n, 4, 3) for n in range(1, 5)]
+    stage = stages[0]
+    for bad in ({"index": 0}, {"index": 5}, {"timesteps": (), "state": 1}):
+        with pytest.raises(ConfigError):
+            replace(stage, **bad)
 
 
 def test_stage_settings_are_checked():

@@ -431,6 +431,7 @@ def case_flat_style_image() -> CaseResult:
     """Flat style images (black, white, a mid colour) through the proposal, colour transfer and stylize."""
     from ..method.color_transfer import covariance_color_transform
     from ..method.proposal.synth import SynthBackend
+    from ..method.schedule import stage_timesteps
     from ..raster import render_scene
 
     scene, cameras = tiny_scene(), tiny_cameras()
@@ -443,7 +444,7 @@ def case_flat_style_image() -> CaseResult:
     for label, color in (("black", 0.0), ("white", 1.0), ("mid", (0.2, 0.5, 0.8))):
         style = torch.from_numpy(_style(color)).permute(2, 0, 1).contiguous()
         backend.prepare_stage([content], style, [content], [coverage])
-        state, energies = backend.propose(backend.encode(content), (951, 501), style, content, coverage)
+        state, energies = backend.propose(backend.encode(content), stage_timesteps(1, 2)[0], style, content, coverage)
         proposal = backend.decode(state)
         transform = covariance_color_transform(render, style)
         moved = transform.apply_to_images(render.double())

@@ -423,7 +423,7 @@ class Stylization:
         self.fitter.covered = [a > COVERED for a in self.alphas]  # its steps' RMSE over covered pixels, for progress
         self.brightness = scene_brightness(self.contents, self.coverages)
         self.backend = self.entry.make(self.config, self.plan, self.brightness, self.device)
-        self.hooks.model.set_stage_costs([self.backend.relative_cost(s.timesteps, *self.size) for s in self.stages])
+        self.hooks.model.set_stage_costs([self.backend.relative_cost(s, *self.size) for s in self.stages])
         note = light_note(self.entry, self.config, self.brightness)
         if note:
             self.hooks.note(note)
@@ -459,7 +459,7 @@ class Stylization:
     # --- One stage ----------------------------------------------------------------------------------------
 
     def propose(self, stage: Stage) -> None:
-        """Sec. 4.1: attention-guided proposals, one fresh-Adam step per timestep, per view; each view guided by the
+        """Sec. 4.1: attention-guided proposals, the stage's updates (``stage.updates``), per view; each view guided by the
         ones before it as the medium says (the guides' painting of the views, when the medium makes one, is the
         fit's when the stage's targets are the proposals themselves)."""
         self.work = work = _StageWork(time.perf_counter())
@@ -473,7 +473,7 @@ class Stylization:
             guide = guides.guide(i)
             kwargs = {"guide": guide} if guide is not None else {}
             self.states[i], energies = self.backend.propose(
-                self.states[i], stage.timesteps, self.style, self.contents[i], self.coverages[i], **kwargs
+                self.states[i], stage, self.style, self.contents[i], self.coverages[i], **kwargs
             )
             guides.proposed(i, self.backend.decode(self.states[i]).detach().float().cpu())
             work.fields.append(self.backend.last_field)
@@ -517,7 +517,7 @@ class Stylization:
             self.plan.carry_marks
             and self.renderer.fast is not None
             and all(f is not None for f in self.work.fields)
-            and self.backend.full_detail(stage.timesteps)
+            and self.backend.full_detail(stage)
         )
 
     def _carried_targets(self, targets: list[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
@@ -611,7 +611,7 @@ class Stylization:
         self.distances.append(self.work.distance)
         improvement = stage_improvement(self.distances)
         early_stop, moved = self.plan.early_stop, self.work.closure.get("fit_moved")
-        if early_stop > 0 and stage.index < len(self.stages) and self.backend.full_detail(stage.timesteps):
+        if early_stop > 0 and stage.index < len(self.stages) and self.backend.full_detail(stage):
             if improvement is not None and improvement < early_stop:
                 self.work.stop_reason = (
                     f"over the last {EARLY_STOP_WINDOW} stages the style distance improved by {improvement:.1%} "

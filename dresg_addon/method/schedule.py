@@ -71,12 +71,29 @@ def ddim_timesteps(
 
 @dataclass(frozen=True)
 class Stage:
-    """One feedback stage n of Algorithm 1: its latent-update timesteps and its scheduler state k_n."""
+    """One feedback stage n of F (Algorithm 1), as the loop hands it to a proposal backend.
+
+    The paper's schedule is written in DDIM timesteps, which the sd15 backend runs; a backend with its own
+    coarse-to-fine ladder (synth) reads only where the stage lies in the run: ``index`` of ``stages``, and
+    its ``updates``.
+    """
 
     index: int  # n, 1-based
+    stages: int  # F, the run's number of stages
     timesteps: tuple[int, ...]  # the timesteps of the latent updates, in order
     state: int  # k_n, the last of ``timesteps``
     alpha_bar: float  # abar at k_n
+
+    def __post_init__(self):
+        if not 1 <= self.index <= self.stages:
+            raise ConfigError(f"stage index {self.index} is outside 1..{self.stages}")
+        if not self.timesteps:
+            raise ConfigError(f"stage {self.index} has no updates")
+
+    @property
+    def updates(self) -> int:
+        """S: the stage's proposal updates (latent steps, or synthesis passes)."""
+        return len(self.timesteps)
 
 
 def stage_timesteps(
@@ -111,7 +128,9 @@ def stage_timesteps(
         # Integer floor keeps the picks strictly increasing (length >= updates_per_stage).
         picks = [start + (j + 1) * length // updates_per_stage - 1 for j in range(updates_per_stage)]
         block = tuple(timesteps[p] for p in picks)
-        stages.append(Stage(index=n + 1, timesteps=block, state=block[-1], alpha_bar=float(abar[block[-1]])))
+        stages.append(
+            Stage(index=n + 1, stages=num_stages, timesteps=block, state=block[-1], alpha_bar=float(abar[block[-1]]))
+        )
     return stages
 
 
@@ -194,7 +213,7 @@ def residual_gamma(schedule: str, alpha_bar: float, stage_index: int, num_stages
 
 def stage_gammas(schedule: str, stages: list[Stage]) -> list[float]:
     """gamma of every stage of ``stages`` under the named schedule."""
-    return [residual_gamma(schedule, s.alpha_bar, s.index, len(stages)) for s in stages]
+    return [residual_gamma(schedule, s.alpha_bar, s.index, s.stages) for s in stages]
 
 
 def _like_input(value: np.ndarray, reference):

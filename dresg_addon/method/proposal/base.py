@@ -1,14 +1,15 @@
 """The proposal interface (Sec. 4.1, Algorithm 1 lines 3-5) and the attention guidance energy.
 
 Every backend maps an image to a state (``encode``), decodes a state to an image (``decode``) and
-``propose``s: it updates a view's state once per scheduler timestep of a stage, given the style image,
-the view's content image and the render's coverage (alpha). Two kinds implement it:
+``propose``s: it updates a view's state ``stage.updates`` times in a stage (a :class:`..schedule.Stage`: its
+index of the run's stages and its DDIM timesteps), given the style image, the view's
+content image and the render's coverage (alpha). Two kinds implement it:
 
 - :class:`AttentionBackend` (``sd15``): a latent with self-attention Q/K/V features at a timestep;
-  ``propose`` is one fresh-Adam step of the attention energy (Eqs. 6-9) per timestep
+  ``propose`` is one fresh-Adam step of the attention energy (Eqs. 6-9) per timestep of the stage
   (:func:`optimize_proposal`). The energy and the loop live here, once.
 - ``synth`` (``proposal/synth.py``): the state is the image, and an update is one pass of example-based
-  synthesis at the scale the timestep sets.
+  synthesis at a scale of its own ladder, which the stage's place in the run picks (no timesteps).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
+
+from ..schedule import Stage
 
 
 @dataclass
@@ -79,8 +82,8 @@ class ProposalBackend(ABC):
     # the painting's pixels; None for one that does not (its marks cannot be carried by the splats).
     last_field = None
 
-    def full_detail(self, timesteps: Sequence[int]) -> bool:
-        """Whether a stage of these timesteps proposes at the backend's full detail.
+    def full_detail(self, stage: Stage) -> bool:
+        """Whether ``stage`` proposes at the backend's full detail.
 
         The early stop judges only such stages: a coarse-to-fine backend's style distance settles at a coarse
         scale long before its fine stages have painted the marks. An x0-predicting backend (sd15) proposes
@@ -88,10 +91,10 @@ class ProposalBackend(ABC):
         """
         return True
 
-    def relative_cost(self, timesteps: Sequence[int], height: int, width: int) -> float:
-        """What a stage of these timesteps costs a view at ``height`` x ``width``, in units of the backend's own
-        (only ratios between stages count: the progress bar prices a stage not yet run by them). One per update."""
-        return float(len(timesteps))
+    def relative_cost(self, stage: Stage, height: int, width: int) -> float:
+        """What ``stage`` costs a view at ``height`` x ``width``, in units of the backend's own (only ratios
+        between stages count: the progress bar prices a stage not yet run by them). One per update."""
+        return float(stage.updates)
 
     @abstractmethod
     def encode(self, image: torch.Tensor) -> torch.Tensor:
@@ -119,13 +122,13 @@ class ProposalBackend(ABC):
     def propose(
         self,
         state: torch.Tensor,
-        timesteps: Sequence[int],
+        stage: Stage,
         style_image: torch.Tensor,  # [3, H, W] at the proposal resolution
         content_image: torch.Tensor | None,  # [3, H, W]
         coverage: torch.Tensor | None = None,  # [H, W] the render's alpha
         guide: tuple[torch.Tensor, torch.Tensor] | None = None,  # ([3, H, W] image, [H, W] weight)
     ) -> tuple[torch.Tensor, list[float]]:
-        """Algorithm 1, lines 3-5: one update of ``state`` per timestep; returns the new state and an energy per update.
+        """Algorithm 1, lines 3-5: ``stage.updates`` updates of ``state``; returns the new state and an energy per update.
 
         ``guide`` (only passed to backends with ``takes_guides``): an image of what earlier views proposed,
         reprojected into this view, and a per-pixel weight (0 where it has nothing to say).
@@ -143,8 +146,8 @@ class AttentionBackend(ProposalBackend):
     learning_rate: float = 0.05  # latent Adam lr of the paper
     terms: EnergyTerms = EnergyTerms()
 
-    def propose(self, state, timesteps, style_image, content_image, coverage=None, guide=None):
-        return optimize_proposal(self, state, timesteps, style_image, content_image, self.terms)
+    def propose(self, state, stage, style_image, content_image, coverage=None, guide=None):
+        return optimize_proposal(self, state, stage.timesteps, style_image, content_image, self.terms)
 
     @abstractmethod
     def features(self, state: torch.Tensor, timestep: int) -> AttentionFeatures:

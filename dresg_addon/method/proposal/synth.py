@@ -29,18 +29,21 @@ How the paper's quantities map onto it (Sec. 4.1, Algorithm 1 lines 3-5):
 - State z^{r,v}: the image itself at the proposal resolution; ``encode`` and ``decode`` are the identity
   (clamped to [0, 1]). Each stage starts from that stage's render, which already carries the scene's
   earlier stylization (feedback), so the synthesis refines what the scene has become.
-- One latent update at scheduler timestep k = one synthesis pass; S updates per stage = S passes.
-- The timestep sets the scale, as the U-Net's features are coarse at high noise and fine at low noise
-  (:func:`pass_scales`): a stage whose first timestep has noise fraction u = 1 - abar runs its passes
-  from the scale that u picks on the ladder of (level, patch size) pairs, coarse to fine (level 2 with
-  patches 33, 21, 13, 9, then level 1, then full resolution), down to full resolution and the smallest
-  patch, as a denoising run from that timestep would (SDEdit-like). Early stages re-synthesize strokes
-  and shapes from coarse levels; late ones only refine brush texture at full resolution. Images too
-  small for a level use the levels they have.
+- One latent update = one synthesis pass; S updates per stage = S passes. The passes do not run at
+  diffusion timesteps: the synthesis has its own ladder of scales, (level, patch size) pairs from coarse
+  to fine (:func:`scale_ladder`: level 2 with patches 33, 21, 13, 9, then level 1, then full resolution),
+  which the run walks as the paper's denoising walks from coarse features at high noise to fine ones at
+  low noise. Stage n of F enters the ladder at the fraction e_n = (n - 1) / (F - 1) of its length
+  (:func:`ladder_entry`): the first stage at the coarsest rung, the last at the finest, evenly between;
+  its passes run from there down to full resolution and the smallest patch (:func:`pass_scales`), as a
+  denoising run from the stage's noise level would (SDEdit-like). With one pass per stage (``standard``'s
+  12) the run takes every rung once. Early stages re-synthesize strokes and shapes from coarse levels;
+  late ones only refine brush texture at full resolution. Images too small for a level use the levels
+  they have.
 - Noise: the first pass of a stage matches from the estimate plus Gaussian noise of standard deviation
-  ``noise x sqrt(1 - abar_k)`` (the forward process's noise level; Elad and Milanfar start from the
-  content plus noise of 50 grey levels), so early stages invent strokes in flat regions and late ones
-  do not.
+  ``noise x sqrt(1 - e_n)``, falling with the stage's rung as the forward process's sqrt(1 - abar) falls
+  with the timestep (Elad and Milanfar start from the content plus noise of 50 grey levels), so early
+  stages invent strokes in flat regions and the last does not.
 - Proposal-render residual: the proposal is the synthesis, and gamma_k acts on its whole residual as in
   Eq. 12. At half strength (the target half-way to the synthesis where gamma_k is
   1) every stage's target kept half of the render's own texture, which is the capture's: on the bonsai
@@ -77,7 +80,7 @@ Alpha-aware: with a coverage map (the render's alpha), only covered pixels take 
 and matching (uncovered pixels are filled in smoothly from covered ones, and patches with no covered
 pixel are left out), and the proposal changes a pixel by ``color_transfer.coverage_weight`` of its alpha:
 the background, and faint floaters over it, stay as rendered. Deterministic for a seed: every random
-draw comes from a generator seeded by the seed, the timestep, the pass and a digest of the content.
+draw comes from a generator seeded by the seed, the stage, the pass and a digest of the content.
 """
 
 from __future__ import annotations
@@ -85,7 +88,6 @@ from __future__ import annotations
 import hashlib
 import math
 from collections import OrderedDict
-from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
 
 import torch
@@ -100,7 +102,7 @@ from ..color_transfer import (
     luminance,
     match_color_histograms,
 )
-from ..schedule import alphas_cumprod
+from ..schedule import Stage
 from .base import ProposalBackend
 
 LIBRARY_CACHE_SIZE = 12
@@ -140,7 +142,7 @@ class SynthSettings:
     # the light is held, which always does it): a stage that ends on a coarse level then proposes the painting's
     # palette, not its upsampled blur.
     final_match: bool = False
-    noise: float = 50.0 / 255.0  # matching noise of a stage's first pass, x sqrt(1 - abar_k)
+    noise: float = 50.0 / 255.0  # matching noise of a stage's first pass, x sqrt(1 - its ladder entry)
     histogram_matching: bool = True
     search_chunk: int = 2048  # estimate patches per matrix multiply of the nearest-patch search
 
@@ -364,20 +366,31 @@ def scale_ladder(levels: int, settings: SynthSettings) -> list[tuple[int, int]]:
     return [(level, size) for level in range(levels - 1, -1, -1) for size in settings.patch_sizes]
 
 
-def pass_scales(noise_fraction: float, passes: int, levels: int, settings: SynthSettings) -> list[tuple[int, int]]:
-    """(level, patch size) of each pass of a stage that starts at noise fraction u = 1 - abar_k.
+def ladder_entry(stage: Stage) -> float:
+    """Where stage n of F enters the ladder, as a fraction of its length: e_n = (n - 1) / (F - 1).
 
-    Pass j stands at u_j = u (P - 1 - j) / (P - 1), from the stage's own noise down to none, as a
-    denoising run from timestep k would; u_j picks the rung floor((1 - u_j) x len(ladder)) of
-    :func:`scale_ladder`: coarse levels and large patches at high noise, full resolution and small
-    patches at none. A stage of one pass stays at its own scale.
+    The first stage starts at the coarsest rung and the last at the finest, evenly between. A lone stage
+    starts at the coarsest, or, with a single pass (the run's last), at the finest.
+    """
+    if stage.stages == 1:
+        return 1.0 if stage.updates == 1 else 0.0
+    return (stage.index - 1) / (stage.stages - 1)
+
+
+def pass_scales(entry: float, passes: int, levels: int, settings: SynthSettings) -> list[tuple[int, int]]:
+    """(level, patch size) of each pass of a stage that enters the ladder at ``entry`` (in [0, 1]).
+
+    Pass j stands at x_j = e + (1 - e) j / (P - 1), from the stage's entry to the ladder's end, as a
+    denoising run from the stage's noise level would; x_j picks the rung floor(x_j x len(ladder)) of
+    :func:`scale_ladder` (the last at 1): coarse levels and large patches first, full resolution and
+    small patches last. A stage of one pass stays at its entry.
     """
     ladder = scale_ladder(levels, settings)
-    u = min(max(float(noise_fraction), 0.0), 1.0)
+    e = min(max(float(entry), 0.0), 1.0)
     out = []
     for j in range(passes):
-        u_j = u * (passes - 1 - j) / (passes - 1) if passes > 1 else u
-        out.append(ladder[min(len(ladder) - 1, int((1.0 - u_j) * len(ladder)))])
+        x_j = e + (1.0 - e) * j / (passes - 1) if passes > 1 else e
+        out.append(ladder[min(len(ladder) - 1, int(x_j * len(ladder)))])
     return out
 
 
@@ -608,7 +621,6 @@ class SynthBackend(ProposalBackend):
             raise ConfigError(f"unknown synth backend settings: {', '.join(unknown)}")
         self.settings = replace(settings or SynthSettings(), **overrides)
         self.settings.check()
-        self._alpha_bar = torch.from_numpy(alphas_cumprod()).float()
         self._libraries: OrderedDict = OrderedDict()
         self._contents: OrderedDict = OrderedDict()
         self._stage: _StageColors | None = None
@@ -630,11 +642,6 @@ class SynthBackend(ProposalBackend):
 
     def decode(self, state: torch.Tensor) -> torch.Tensor:  # [3, H, W] -> [3, H, W]
         return self._check_image(state, "state")
-
-    def alpha_bar(self, timestep: int) -> float:
-        if not 0 <= int(timestep) < self._alpha_bar.numel():
-            raise ValueError(f"timestep must be in [0, {self._alpha_bar.numel()}), got {timestep}")
-        return float(self._alpha_bar[int(timestep)])
 
     def _library(self, style: torch.Tensor, style_key: bytes, level: int, size: int) -> StyleLibrary:
         key = (style_key, level, size)
@@ -697,39 +704,34 @@ class SynthBackend(ProposalBackend):
         """The content sigma in pixels of ``level``."""
         return self.settings.content_sigma / 2**level
 
-    def full_detail(self, timesteps: Sequence[int]) -> bool:
+    def full_detail(self, stage: Stage) -> bool:
         """True once the stage's last pass runs at full resolution, on the pyramid of the prepared stage's views
         (before any, the largest, which reaches full resolution last).
 
         With ``standard``'s 12 one-pass stages that is stage 9 on; stopped before it (as the early stop did
         after 3-7 stages), the scene held only the coarse levels' blurred bands: no marks.
         """
-        if not timesteps:
-            return True
         levels = self._levels or self.settings.max_levels
-        plan = pass_scales(1.0 - self.alpha_bar(timesteps[0]), len(timesteps), levels, self.settings)
-        return plan[-1][0] == 0
+        return pass_scales(ladder_entry(stage), stage.updates, levels, self.settings)[-1][0] == 0
 
-    def relative_cost(self, timesteps: Sequence[int], height: int, width: int) -> float:
+    def relative_cost(self, stage: Stage, height: int, width: int) -> float:
         """A pass costs PASS_OVERHEAD plus its level's share of the full-resolution pixels, in units of the latter:
         on bonsai x Starry Night (quiet) a stage's proposals took 2.5 s at the coarsest level and 3.7 s at full
         resolution with preview's 8 views, 5.0 s and 6.4 s with standard's 16: 2.6 + 4^-level gives their middle."""
-        if not timesteps:
-            return 0.0
         levels = pyramid_levels(height, width, self.settings)
-        plan = pass_scales(1.0 - self.alpha_bar(timesteps[0]), len(timesteps), levels, self.settings)
+        plan = pass_scales(ladder_entry(stage), stage.updates, levels, self.settings)
         return sum(PASS_OVERHEAD + 4.0**-level for level, _ in plan)
 
     def propose(
         self,
         state: torch.Tensor,  # [3, H, W]
-        timesteps: Sequence[int],
+        stage: Stage,
         style_image: torch.Tensor,  # [3, Hs, Ws]
         content_image: torch.Tensor | None,  # [3, H, W]
         coverage: torch.Tensor | None = None,  # [H, W] render alpha
         guide: tuple[torch.Tensor, torch.Tensor] | None = None,  # ([3, H, W] image, [H, W] weight)
     ) -> tuple[torch.Tensor, list[float]]:
-        """One synthesis pass per timestep (Algorithm 1, lines 3-5); returns the proposal and the pass energies.
+        """``stage.updates`` synthesis passes (Algorithm 1, lines 3-5); returns the proposal and the pass energies.
 
         The proposal is the synthesis on covered pixels, blending into the render as coverage falls
         (``color_transfer.coverage_weight``): the background and faint floaters keep their colour.
@@ -746,35 +748,33 @@ class SynthBackend(ProposalBackend):
             if not torch.isfinite(coverage).all():
                 raise NumericalError("the synth backend got a coverage map with non-finite values")
             coverage = coverage.clamp(0.0, 1.0)
-        if not timesteps:
-            return render.clone(), []
         if guide is not None:
             guide = (
                 self._check_image(guide[0], "guide"),
                 guide[1].detach().float().reshape(height, width).clamp_min(0.0),
             )
         levels = min(pyramid_levels(height, width, s), pyramid_levels(*style.shape[1:], s))
-        noise_fraction = 1.0 - self.alpha_bar(timesteps[0])
-        plan = pass_scales(noise_fraction, len(timesteps), levels, s)
+        entry = ladder_entry(stage)
+        plan = pass_scales(entry, stage.updates, levels, s)
         keys = (_digest(style), _digest(content, coverage if coverage is not None else torch.zeros(0)))
         # Colours first (Elad and Milanfar: colour transfer before synthesis), then the passes, coarse to fine;
         # going to a finer level upsamples the estimate, whose detail the finer patches then synthesize.
         level = plan[0][0]
-        stage = self._stage if self._stage is not None and self._stage.style_key == keys[0] else None
-        if stage is not None:
-            start = recolor(render, stage.states, coverage)
+        colors = self._stage if self._stage is not None and self._stage.style_key == keys[0] else None
+        if colors is not None:
+            start = recolor(render, colors.states, coverage)
         else:
             start = to_style_colors(render, style, coverage, s.histogram_matching)
         if guide is not None:
             start = _blend(start, guide[0], guide[1])
         x = downsample(start, level)
         energies, self._matched = [], None
-        for j, ((pass_level, size), timestep) in enumerate(zip(plan, timesteps)):
+        for j, (pass_level, size) in enumerate(plan):
             if pass_level != level:
                 level = pass_level
                 x = upsample(x, height // 2**level, width // 2**level)
-            generator = _generator(s.seed, "pass", int(timestep), j, keys[1])
-            noise = s.noise * math.sqrt(noise_fraction) if j == 0 else 0.0
+            generator = _generator(s.seed, "pass", stage.index, stage.stages, j, keys[1])
+            noise = s.noise * math.sqrt(1.0 - entry) if j == 0 else 0.0
             x, energy = self._pass(x, style, content, coverage, keys, level, size, noise, generator, guide)
             energies.append(energy)
         self.last_field = None if self._matched is None else painting_field(self._matched, style, height, width)
