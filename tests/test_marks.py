@@ -16,7 +16,6 @@ from dresg_addon.scene.camera import Camera, look_at
 from dresg_addon.scene.gaussians import GaussianScene
 from dresg_addon.scene.warp import warp_to
 
-
 COARSE, FINE = stage_timesteps(12, 1)[0], stage_timesteps(12, 1)[-1]  # standard's first stage and its last
 
 
