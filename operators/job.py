@@ -62,7 +62,7 @@ class StylizeJob(Job):
         self.loss: float | None = None  # the fit's RMSE over covered pixels
         self.eta: float | None = None  # seconds left; None while the run cannot estimate them yet
         self.stages_applied = 0
-        self.images: dict = {}  # view name -> {"render"|"proposal"|"target"|"residual": [H, W, 3]}
+        self.images: dict = {}  # view name -> {"render"|"proposal"|"marks"|"target"|"residual": [H, W, 3]}
         self.messages: list[str] = []  # the engine's notes (views chosen, Gaussians optimised...)
         self._inputs = (scene, cameras, style_rgb, views)
         self.mask = mask  # [N] bool: the selection this run stylizes (None: every splat)

@@ -19,7 +19,7 @@ from .splat_object import (
 from .tasks import CancelJobOperator, JobOperator, JobState, tag_redraw
 from .views import fitting_cameras, view_plan
 
-IMAGE_KINDS = ("render", "proposal", "target", "residual")
+IMAGE_KINDS = ("render", "proposal", "marks", "target", "residual")  # marks: the painting as the splats carry it
 # What a run from one view leaves out, said before it starts (the Views panel and the operator).
 SINGLE_VIEW = "One view paints only the side it sees: the splats it does not see keep their colours"
 

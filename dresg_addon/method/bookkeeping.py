@@ -497,7 +497,7 @@ class RunRecord:
 
 def saved_view_path(views_dir: str | os.PathLike, stage: int, name: str, kind: str) -> Path:
     """Where ``save_views_dir`` keeps a view's image of a stage: ``stageNN/NAME_KIND.png``, the camera's name made
-    file-safe (``render``, ``proposal``, ``target``, ``residual``)."""
+    file-safe (``render``, ``proposal``, ``marks`` when the splats carry them, ``target``, ``residual``)."""
     safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
     return Path(views_dir) / f"stage{stage:02d}" / f"{safe}_{kind}.png"
 
