@@ -216,7 +216,7 @@ DEFAULT_PRESET = "standard"
 # splats, 16 orbit cameras, 2 cores: bench/README.md). The stages, views and fit come from the preset itself
 # (preset_description), so the text cannot disagree with it.
 PRESET_INFO: dict[str, tuple[str, str, str]] = {
-    "standard": ("Standard", "The default", "about 2.5 min for 273k splats on 2 cores"),
+    "standard": ("Standard", "The default", "about 3 min for 273k splats on 2 cores"),
     "preview": ("Preview", "A quick look", "under a minute for 273k splats on 2 cores"),
     "paper": ("Paper (GPU)", "The paper's exact settings", "hours on a CPU: use a GPU"),
     "cpu": (

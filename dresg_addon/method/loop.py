@@ -521,13 +521,13 @@ class Stylization:
         )
 
     def _carried_targets(self, targets: list[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        """Each splat's colour from the painting where the view that sees its mark best places it; each target's fine
-        band from the splats so coloured (marks.carried_targets). Returns the views' renders of those colours too."""
+        """Each splat's painting coordinate from the view that owns it, each view painted as the splats carry the
+        painting, and each target's fine band from that painting (marks.py); (the views' paintings, the targets)."""
         splats = self.state.seen.numel()
-        votes = [
-            vote_view(fast.contributions(), fast.shape, field, splats)
-            for fast, field in zip(self.renderer.fast, self.work.fields)
-        ]
+        votes = []
+        for fast, painting_field in zip(self.renderer.fast, self.work.fields):
+            votes.append(vote_view(fast.contributions(), fast.shape, painting_field, splats))
+            self.hooks.check_cancel()
         marks = CarriedMarks.from_votes(votes)
         source = self.work.fields[0].source
         views = [paint_view(fast.contributions(), fast.shape, self.size, marks, source) for fast in self.renderer.fast]
