@@ -18,7 +18,7 @@ is the owner's copy of the painting, translated, in every view: the strokes sit 
 
 What the painting's raw pixels do not hold (the scene's forms and light, the palette's regions) is in the
 proposals' coarse bands, which the views agree on; so each view's target keeps its coarse bands and takes its fine
-band, below the stroke scale, from the splats' painted colours as that view renders them (:func:`carried_targets`).
+band, below the stroke scale, from its painting as the splats carry it (:func:`carried_targets`).
 The colour solve over the views then levels what is left between them, the seams (Waechter et al. 2014 level
 theirs the same way), instead of averaging the marks.
 """
