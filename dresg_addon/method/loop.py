@@ -476,7 +476,8 @@ class Stylization:
                 self.states[i], stage, self.style, self.contents[i], self.coverages[i], **kwargs
             )
             guides.proposed(i, self.backend.decode(self.states[i]).detach().float().cpu())
-            work.fields.append(self.backend.last_field)
+            if self.marks_wanted(stage):
+                work.fields.append(self.backend.last_field)
             work.energies.append(energies[-1])
         if self.gammas[stage.index - 1] == 1.0:  # the targets are the proposals: what the guides painted is the fit
             work.painted = guides.painting()
@@ -510,15 +511,15 @@ class Stylization:
                 self.work.images[name]["target"] = target.permute(1, 2, 0).numpy()
         return targets
 
+    def marks_wanted(self, stage: Stage) -> bool:
+        """Whether this stage's marks are to come from the splats (marks.py): the plan asks for it, the colours are
+        fitted alone (geometry frozen) and the stage proposes at full detail."""
+        return self.plan.carry_marks and self.renderer.fast is not None and self.backend.full_detail(stage)
+
     def carries_marks(self, stage: Stage) -> bool:
-        """Whether this stage's marks come from the splats (marks.py): the plan asks for it, the backend said where its
-        proposals come from, the colours are fitted alone (geometry frozen) and the stage proposes at full detail."""
-        return (
-            self.plan.carry_marks
-            and self.renderer.fast is not None
-            and all(f is not None for f in self.work.fields)
-            and self.backend.full_detail(stage)
-        )
+        """Whether they do: wanted, and the backend said where every view's proposal comes from."""
+        fields = self.work.fields
+        return self.marks_wanted(stage) and len(fields) == len(self.cameras) and all(f is not None for f in fields)
 
     def _carried_targets(self, targets: list[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """Each splat's painting coordinate from the view that owns it, each view painted as the splats carry the

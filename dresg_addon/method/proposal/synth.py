@@ -625,7 +625,16 @@ class SynthBackend(ProposalBackend):
         self._contents: OrderedDict = OrderedDict()
         self._stage: _StageColors | None = None
         self._matched: _Matches | None = None
+        self._field_of: tuple[torch.Tensor, int, int] | None = None  # the last proposal's (style, height, width)
         self._levels: int | None = None  # the pyramid of the last prepared stage's views
+
+    @property
+    def last_field(self) -> PaintingField | None:
+        """Where the last proposal's pixels come from in the painting (built when asked: only runs that carry the
+        marks need it)."""
+        if self._matched is None or self._field_of is None:
+            return None
+        return painting_field(self._matched, *self._field_of)
 
     @staticmethod
     def _check_image(image: torch.Tensor, what: str) -> torch.Tensor:
@@ -777,7 +786,7 @@ class SynthBackend(ProposalBackend):
             noise = s.noise * math.sqrt(1.0 - entry) if j == 0 else 0.0
             x, energy = self._pass(x, style, content, coverage, keys, level, size, noise, generator, guide)
             energies.append(energy)
-        self.last_field = None if self._matched is None else painting_field(self._matched, style, height, width)
+        self._field_of = (style, height, width)
         # A stage that ends at a coarse level proposes its coarse bands only: none of the render's finer texture
         # (the capture's) goes back on; the finer stages paint it from the painting.
         x = upsample(x, height, width)
