@@ -149,8 +149,9 @@ class ProgressModel:
     The time left is the weight of the parts still to come plus what remains of the current part's expected
     time; None (shown as "estimating") until a part has ended (the view selection, or the set-up when the views
     are given): the parts not timed yet are priced at their prior costs x the seconds per unit the ended parts
-    took, then at their kind's own times once those have run. It counts every stage: when the stages stop early,
-    the run ends sooner.
+    took, then at their kind's own times once those have run. With an early stop (:meth:`expect_stop`) the run is
+    expected to end at the first stage that may end it, as it mostly does (the bonsai's ``standard`` after 9 of 12);
+    each stage it goes on past that is counted when it starts.
     """
 
     def __init__(self, clock: Callable[[], float] = time.perf_counter):
@@ -159,6 +160,7 @@ class ProgressModel:
         self.counts = {"select": 1, "views": 1}  # candidate cameras, active views
         self.costs = dict(PRIOR_COSTS)
         self.stage_costs: dict[int, float] = {}  # stage -> its proposals' relative cost (ProposalBackend.relative_cost)
+        self.expected_last: int | None = None  # the stage the run is expected to end after (None: the last)
         self.timed: dict[tuple[str, int], float] = {}  # (phase, stage) -> seconds, for the parts that ended
         self.current: tuple[str, int] | None = None
         self.current_started = 0.0
@@ -176,6 +178,10 @@ class ProgressModel:
         """Each stage's proposals' relative cost, stage 1 first: a stage not run yet is priced by it, so the fine
         stages of a coarse-to-fine backend are not priced as its coarse ones."""
         self.stage_costs = {n: float(c) for n, c in enumerate(costs, 1) if math.isfinite(c) and c > 0}
+
+    def expect_stop(self, stage: int | None) -> None:
+        """The first stage after which the early stop may end the run (None: it runs every stage)."""
+        self.expected_last = stage
 
     def set_counts(self, cameras: int | None = None, views: int | None = None) -> None:
         """The candidate cameras view selection renders (0: the views were given) and the active views."""
@@ -206,7 +212,11 @@ class ProgressModel:
     def parts(self) -> list[tuple[str, int]]:
         """This run's parts in order (stages before ``first_stage`` were done by the run it resumes)."""
         parts = [("select", 0), ("setup", 0)]
-        for stage in range(self.first_stage, self.stages + 1):
+        last = self.stages
+        if self.expected_last is not None:
+            reached = self.current[1] if self.current is not None and self.current[0] in STAGE_PHASES else 0
+            last = min(max(self.expected_last, reached), self.stages)
+        for stage in range(self.first_stage, last + 1):
             parts += [(phase, stage) for phase in STAGE_PHASES]
         if self.post:
             parts.append(("post", self.stages + 1))

@@ -62,6 +62,9 @@ class Plan:
     # Each splat carries where in the painting its colour comes from, and the views' targets take their marks from
     # it (method/marks.py); only with a backend that says where its proposals' pixels come from.
     carry_marks: bool = False
+    # With geometry frozen, splats narrower than this many pixels in every active view share a colour per pixel-sized
+    # cell during the fit (method/proxies.py); 0: every splat its own.
+    proxy_sigma: float = 1.0
     ablation: Ablation = Ablation()
 
     def __post_init__(self) -> None:
@@ -73,6 +76,7 @@ class Plan:
                 (0 <= self.early_stop < 1, "early_stop must be in [0, 1) (0: off)"),
                 (math.isfinite(self.best_views) and self.best_views >= 0, "best_views must be >= 0"),
                 (math.isfinite(self.split_cap) and 0 <= self.split_cap <= 4, "split_cap must be in [0, 4]"),
+                (math.isfinite(self.proxy_sigma) and self.proxy_sigma >= 0, "proxy_sigma must be >= 0"),
             ]
         )
 

@@ -41,27 +41,56 @@ from .color_solve import (
     view_average_colors,
 )
 from .optim import GeometryBounds, check_finite_gradients, project_geometry_offsets_
+from .proxies import ProxyColumns, proxy_columns
 
 
 @dataclass
 class FitState:
-    """The optimised state: RGB colours and bounded geometry offsets of the seen Gaussians."""
+    """The optimised state: RGB colours and bounded geometry offsets of the fit's columns: the seen Gaussians, or with
+    proxies (:mod:`.proxies`) one per seen Gaussian at least a pixel wide and one per cell of narrower ones."""
 
-    seen: torch.Tensor  # [M] indices into the scene
+    seen: torch.Tensor  # [M] indices into the scene: each column's Gaussian (a cell's: its representative)
     colors: torch.Tensor  # [M, 3] RGB (render colour before the view-dependent SH rest)
     d_means: torch.Tensor | None  # [M, 3]
     d_log_scales: torch.Tensor | None
     d_quats: torch.Tensor | None
+    # With proxies: (every seen Gaussian's index into the scene, its column); None: one column per seen Gaussian.
+    members: tuple[torch.Tensor, torch.Tensor] | None = None
 
     @classmethod
-    def start(cls, scene: GaussianScene, seen: torch.Tensor, geometry: bool) -> FitState:
-        """The scene's own colours (SH DC as RGB) and zero offsets (None with geometry frozen)."""
+    def start(
+        cls, scene: GaussianScene, seen: torch.Tensor, geometry: bool, proxies: ProxyColumns | None = None
+    ) -> FitState:
+        """The scene's own colours (SH DC as RGB) and zero offsets (None with geometry frozen); a cell's colour is the
+        mean of its members'."""
         base_colors = torch.from_numpy(scene.base_colors.astype(np.float32))[seen]
+        members = None
+        if proxies is not None and proxies.grouped:
+            members = (seen, proxies.column)
+            sums = torch.zeros(proxies.count, 3, dtype=torch.float64).index_add_(
+                0, proxies.column, base_colors.double()
+            )
+            counts = torch.bincount(proxies.column, minlength=proxies.count).clamp_min(1)
+            base_colors, seen = (sums / counts[:, None]).float(), seen[proxies.representative]
 
         def offsets(width):
             return torch.zeros(seen.numel(), width, requires_grad=True) if geometry else None
 
-        return cls(seen, base_colors.clone().requires_grad_(True), offsets(3), offsets(3), offsets(4))
+        return cls(seen, base_colors.clone().requires_grad_(True), offsets(3), offsets(3), offsets(4), members)
+
+    @property
+    def splat_count(self) -> int:
+        """How many of the scene's Gaussians the fit colours."""
+        return int(self.seen.numel() if self.members is None else self.members[0].numel())
+
+    def splat_colors(self) -> tuple[np.ndarray, np.ndarray]:
+        """(scene indices [K], their colours [K, 3]) of every Gaussian the fit colours: a cell's members all take
+        its colour."""
+        colors = self.colors.detach()
+        if self.members is None:
+            return self.seen.numpy(), colors.numpy()
+        index, column = self.members
+        return index.numpy(), colors[column].numpy()
 
     def params(self):
         return [p for p in (self.colors, self.d_means, self.d_log_scales, self.d_quats) if p is not None]
@@ -116,25 +145,36 @@ class ViewRenderer:
         keep_sh_rest: bool,  # render the scene's view-dependent SH rest bands on top of the fitted colour
         fast: list[ColorOnlyRenderer] | None,  # full-scene colour-only renderers (geometry frozen), else None
         selected: bool = False,  # ``seen`` is a selection: the other seen Gaussians keep their (DC) colours
+        proxy_sigma: float = 0.0,  # colour-only: splats narrower than this (px) share a colour per cell (proxies.py)
     ):
         means, quats, log_scales, logits = geometry_tensors(scene)
-        self.means, self.quats = means[seen], quats[seen]
-        self.log_scales, self.logits = log_scales[seen], logits[seen]
+        self.proxies: ProxyColumns | None = None
         self.cameras = cameras
         self.settings = settings
-        # View-dependent colour of kept SH rest bands: a constant per-view offset on the RGB colour.
+        # View-dependent colour of kept SH rest bands: a constant per-view offset on the RGB colour (no proxies then).
         self.offsets: list[torch.Tensor | None] = [None] * len(cameras)
         if scene.sh_rest is not None and keep_sh_rest:
             rest = torch.from_numpy(scene.sh_rest[seen.numpy()]).float()
             degree = scene.sh_degree
             for v, camera in enumerate(cameras):
-                dirs = self.means - torch.as_tensor(camera.center, dtype=torch.float32)
+                dirs = means[seen] - torch.as_tensor(camera.center, dtype=torch.float32)
                 dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
                 basis = sh_basis(dirs, degree)[:, 1:]  # [M, K]
                 self.offsets[v] = (basis[:, :, None] * rest).sum(1)
         # Colour-only: the full-scene renderers that found the seen set, narrowed to it (no second rasterization).
         fixed = torch.from_numpy(scene.base_colors).float() if selected else None
         self.fast = None if fast is None else [f.restrict(seen, fixed) for f in fast]
+        self.base_images: list[torch.Tensor] | None = None
+        if self.fast is not None and proxy_sigma > 0 and all(o is None for o in self.offsets):
+            proxies = proxy_columns(means[seen], log_scales[seen], cameras, [f.seen for f in self.fast], proxy_sigma)
+            if proxies.grouped:
+                # The scene as it is, rendered before its cells share colours: the runs' base renders stay exact.
+                colors = torch.from_numpy(scene.base_colors.astype(np.float32))[seen]
+                self.base_images = [f(colors).permute(2, 0, 1) for f in self.fast]
+                self.fast = [f.merge_columns(proxies.column, proxies.count) for f in self.fast]
+                self.proxies, seen = proxies, seen[proxies.representative]
+        self.means, self.quats = means[seen], quats[seen]
+        self.log_scales, self.logits = log_scales[seen], logits[seen]
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -175,6 +215,10 @@ class ViewRenderer:
         """Every view's current image, without gradients."""
         with torch.no_grad():
             return [self(v, fit).detach() for v in range(len(self))]
+
+    def base(self, fit: FitState) -> list[torch.Tensor]:  # -> V x [3, H, W]
+        """Every view's image of the scene as it is (``fit`` at its start): exact with proxies too."""
+        return [image.clone() for image in self.base_images] if self.base_images is not None else self.all(fit)
 
     def depth(self, v: int, fit: FitState) -> torch.Tensor:  # -> [H, W]
         """The view's rendered depth (0 where nothing is seen), with the current geometry offsets."""
@@ -393,18 +437,18 @@ def result_scene(scene: GaussianScene, fit: FitState, zero_sh_rest: bool, select
 
     ``zero_sh_rest`` drops the view-dependent bands of every splat, or with ``selected`` (a masked run) only
     of the fitted ones, so that every other splat stays exactly as it was."""
-    seen = fit.seen.numpy()
-    colors = fit.colors.detach().numpy().astype(np.float64)
+    painted, colors = fit.splat_colors()
     sh_dc = scene.sh_dc.copy()
-    sh_dc[seen] = ((colors - 0.5) / SH_C0).astype(np.float32)
+    sh_dc[painted] = ((colors.astype(np.float64) - 0.5) / SH_C0).astype(np.float32)
     out = replace(scene, sh_dc=sh_dc)
     if scene.sh_rest is not None and zero_sh_rest:
         sh_rest = np.zeros_like(scene.sh_rest)
         if selected:
             sh_rest = scene.sh_rest.copy()
-            sh_rest[seen] = 0.0
+            sh_rest[painted] = 0.0
         out = replace(out, sh_rest=sh_rest)
     if fit.d_means is not None:
+        seen = fit.seen.numpy()
         means, log_scales, quats = scene.means.copy(), scene.log_scales.copy(), scene.quats.copy()
         means[seen] += fit.d_means.detach().numpy()
         log_scales[seen] += fit.d_log_scales.detach().numpy()

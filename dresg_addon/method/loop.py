@@ -359,10 +359,25 @@ class Stylization:
                 f"optimising {seen.numel()} of {len(self.scene)} Gaussians "
                 f"({left_out} unseen by the active views are left out)"
             )
-        self.state = state = FitState.start(self.scene, seen, config.optimize_geometry)
         self.renderer = ViewRenderer(
-            self.scene, self.cameras, seen, raster, config.sh_rest == "keep", fast, self.mask is not None
+            self.scene,
+            self.cameras,
+            seen,
+            raster,
+            config.sh_rest == "keep",
+            fast,
+            self.mask is not None,
+            self.plan.proxy_sigma,
         )
+        proxies = self.renderer.proxies
+        if proxies is not None:
+            shared = int(torch.bincount(proxies.column, minlength=proxies.count).gt(1).sum())
+            grouped = seen.numel() - (proxies.count - shared)
+            say(
+                f"{grouped} of them narrower than {self.plan.proxy_sigma:g} px share {shared} colours during the fit "
+                f"({proxies.count} in all)"
+            )
+        self.state = state = FitState.start(self.scene, seen, config.optimize_geometry, proxies)
         weights = FitLossWeights()
         if not config.optimize_geometry:
             say(f"colour fit: bounded least squares over the {len(self.cameras)} active views, solved each stage")
@@ -382,7 +397,7 @@ class Stylization:
         geometry_params = [p for p in (state.d_log_scales, state.d_quats) if p is not None]
         mean_params = [state.d_means] if state.d_means is not None else []
         optimizer = make_fit_optimizer([state.colors], geometry_params, settings, mean_params)
-        base_renders = [r.clone() for r in self.renderer.all(state)]
+        base_renders = self.renderer.base(state)
         self.solver = None if config.optimize_geometry else BoundedColorFit(self.renderer, state, self.medium)
         self.fitter = MultiViewFit(
             self.renderer,
@@ -424,6 +439,9 @@ class Stylization:
         self.brightness = scene_brightness(self.contents, self.coverages)
         self.backend = self.entry.make(self.config, self.plan, self.brightness, self.device)
         self.hooks.model.set_stage_costs([self.backend.relative_cost(s, *self.size) for s in self.stages])
+        if self.plan.early_stop > 0:  # the first stage finish_stage may stop after
+            may_stop = [s.index for s in self.stages[:-1] if self.backend.full_detail(s)]
+            self.hooks.model.expect_stop(may_stop[0] if may_stop else None)
         note = light_note(self.entry, self.config, self.brightness)
         if note:
             self.hooks.note(note)
@@ -448,7 +466,7 @@ class Stylization:
         log = self.record.entries
         self.distances = [entry["style_distance"] for entry in log if "style_distance" in entry]
         if not self.distances or "base_style_distance" not in log[0]:
-            self.distances.insert(0, self.style_distance(self.renderer.all(self.state)))
+            self.distances.insert(0, self.style_distance(base_renders))
             self.hooks.say(f"style distance of the base renders: {self.distances[0]:.4f}")
         else:
             self.distances.insert(0, log[0]["base_style_distance"])
@@ -644,7 +662,7 @@ class Stylization:
             "seconds": self.hooks.elapsed(),
             "peak_rss_mb": peak_rss_mb(),
             "views": len(self.cameras),
-            "gaussians_optimised": int(self.state.seen.numel()),
+            "gaussians_optimised": self.state.splat_count,
             "scene_extent": self.extent,
             **(
                 {"footprint_px": self.footprint, "medium": self.config.medium, "brightness": self.brightness}
@@ -712,7 +730,7 @@ class Stylization:
         log = self.record.entries
         last_loss = log[-1].get("fit_residual", float("nan")) if log else float("nan")  # the fit RMSE, as reported
         self.hooks.report(len(self.stages), 1, 1, "done", last_loss, f"done in {seconds:.1f} s")
-        return StylizeResult(scene, self.selection, log, seconds, int(self.state.seen.numel()), self.parents)
+        return StylizeResult(scene, self.selection, log, seconds, self.state.splat_count, self.parents)
 
     # --- Shared by the steps ------------------------------------------------------------------------------
 

@@ -626,6 +626,19 @@ class ColorOnlyRenderer:
         self._build(keep.numel())
         return self
 
+    def merge_columns(self, column: torch.Tensor, count: int) -> ColorOnlyRenderer:
+        """Columns shared: Gaussian i (a current column) becomes column ``column[i]`` of ``count``, its samples of one
+        pixel summed with those of the others there. The image of colours c is then exactly that of the Gaussians
+        each painted c[column[i]]; the samples stay sorted by pixel."""
+        key = self._pixel * count + column[self._gauss]
+        keys, inverse = torch.unique(key, sorted=True, return_inverse=True)
+        self._weight = torch.zeros(keys.numel(), dtype=self._weight.dtype).index_add_(0, inverse, self._weight)
+        self._pixel, self._gauss = keys // count, keys % count
+        self.seen = torch.zeros(count, dtype=torch.bool, device=keys.device)
+        self.seen[self._gauss] = True
+        self._build(count)
+        return self
+
     def contributions(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """W's entries: (pixel, column, T * alpha) of every sample, sorted by pixel."""
         return self._pixel, self._gauss, self._weight
