@@ -89,11 +89,20 @@ class LinearViews:
     are the b_v.
     """
 
-    def __init__(self, maps: Sequence, constants: Sequence[torch.Tensor]):
+    def __init__(self, maps: Sequence, constants: Sequence[torch.Tensor], columns: int | None = None):
         if len(maps) != len(constants) or not maps:
             raise ValueError("LinearViews needs one constant term per view, and at least one view")
         self.maps, self.constants = list(maps), [c.reshape(-1, 3).float() for c in constants]
         self.energy = torch.stack([m.column_energy() for m in self.maps]).sum(0).float()  # [N]
+        # The mean squared weight per column, over ``columns`` columns (a view's own columns stand for all N).
+        self.mean_energy = float(self.energy.double().sum() / (columns or self.energy.numel()))
+
+    def alone(self, view: int) -> tuple[LinearViews, torch.Tensor]:
+        """View ``view`` by itself over the columns it draws (a solve's vectors then hold only those), and their
+        indices [K]; its ridge and anchor weigh what they would over all N columns."""
+        m = self.maps[view]
+        drawn = torch.nonzero(m.column_energy() > 0).squeeze(-1)
+        return LinearViews([_Columns(m, drawn)], [self.constants[view]], self.energy.numel()), drawn
 
     def __len__(self) -> int:
         return len(self.maps)
@@ -114,13 +123,33 @@ class LinearViews:
         return self.drawn_weights.sum(0)
 
 
+class _Columns:
+    """A map restricted to some of its columns (the rest are zero in it): products on vectors of those columns only."""
+
+    def __init__(self, m, columns: torch.Tensor):
+        self.m, self.columns = m, columns
+        self.shape = (m.shape[0], columns.numel())
+        self._full = torch.zeros(m.shape[1], 3)  # the other columns stay 0 (the map does not read them anyway)
+
+    def matvec(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[1] != 3:
+            return self.m.matvec(torch.zeros(self.m.shape[1], x.shape[1]).index_copy_(0, self.columns, x))
+        return self.m.matvec(self._full.index_copy_(0, self.columns, x))
+
+    def rmatvec(self, y: torch.Tensor) -> torch.Tensor:
+        return self.m.rmatvec(y).index_select(0, self.columns)
+
+    def column_energy(self) -> torch.Tensor:
+        return self.m.column_energy().index_select(0, self.columns)
+
+
 class _Problem:
     """f, its gradient and its damped normal-equation products for fixed targets."""
 
     def __init__(self, views: LinearViews, targets, ridge: float, anchor: torch.Tensor, mu: float):
         self.views = views
         self.rhs = [t - b for t, b in zip(targets, views.constants)]  # t_v - b_v
-        mean_energy = float(views.energy.mean().clamp_min(1e-12))
+        mean_energy = max(views.mean_energy, 1e-12)
         self.ridge = ridge * mean_energy
         self.anchor, self.anchor_weight = anchor, mu * mean_energy
         diagonal = views.energy[:, None].expand(-1, 3)
@@ -276,8 +305,10 @@ def single_view_solutions(
     ``settings.anchor`` > 0). A splat the view does not draw keeps its ``start`` colour. One solve per view costs
     about one joint solve."""
     solutions = []
-    for m, b, target in zip(views.maps, views.constants, targets):
-        solutions.append(projected_solve(LinearViews([m], [b]), [target], start, settings).colors)
+    for v, target in enumerate(targets):
+        alone, drawn = views.alone(v)
+        local = projected_solve(alone, [target], start.index_select(0, drawn), settings).colors
+        solutions.append(start.detach().float().clamp(0.0, 1.0).index_copy(0, drawn, local))
         if each_view is not None:
             each_view(len(solutions))
     return solutions
