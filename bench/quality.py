@@ -101,6 +101,8 @@ TARGET_FORMS = 0.8  # per scene, the mean over its styles
 TARGET_SHORT_RATIO = 1.2
 TARGET_CLOSED = 0.5
 TARGET_SECONDS = {"preview": 60.0, "standard": 300.0}
+TARGET_DENSE_S, TARGET_DENSE_GB = 300.0, 4.0  # the default preset on the bonsai x 8 (a capture's 2M splats)
+TARGET_ESTIMATE = 1.25  # the time left as estimated from stage 2 on, within this factor of the truth
 SCALES = ("sw_patches", "sw_patches_half", "sw_patches_quarter")  # dresg_addon.evaluation.views.SCALES
 COLUMNS = (
     ("sw_patches", "SW patch ↓", 4),
@@ -190,7 +192,7 @@ def run_case(spec: dict) -> dict:
     scene, train, novel, style = load_case(spec)
     started = time.perf_counter()
     row = spec["row"]
-    log = []
+    log, estimates = [], []
     stroke_size = preset("standard").stroke_size  # mark contrast's painting scale where no stylizer run sets one
     if row == "unstylized":
         out = scene
@@ -200,7 +202,12 @@ def run_case(spec: dict) -> dict:
         name, changes, plan_changes = row_settings(row)
         config = preset(name, **spec.get("overrides", {}), **changes)
         plan = config.plan().with_(**spec.get("plan", {}), **plan_changes)
-        result = stylize(scene, train, style, config, plan=plan)
+
+        def progress(p):  # (seconds since the start, the estimate of the time left) as each stage from 2 on begins
+            if p.phase == "proposal" and p.stage >= 2 and p.step == 0 and math.isfinite(p.eta_seconds):
+                estimates.append((time.perf_counter() - started, p.eta_seconds))
+
+        result = stylize(scene, train, style, config, plan=plan, progress=progress)
         out, log, stroke_size = result.scene, result.log, config.stroke_size
     seconds = time.perf_counter() - started
     peak = harness.peak_rss_bytes()
@@ -217,9 +224,11 @@ def run_case(spec: dict) -> dict:
                         folder / f"{spec['scene']}_v{i:02d}_1x.png", np.ascontiguousarray(before.permute(1, 2, 0))
                     )
     stages = [e for e in log if e.get("stage") != "post"]
+    ratios = [eta / (seconds - at) for at, eta in estimates if seconds - at > 0]
     return {
         **measured.mean,
         **fit_summary(log),
+        "estimate_ratios": ratios,  # the estimate of the time left over the time it took, at each stage from 2 on
         "seconds": seconds,
         "peak_rss": peak,
         "gaussians": len(scene),
@@ -385,6 +394,21 @@ def verdicts(results: dict, rows: list[str], quick: bool) -> list[str]:
                     f"- {row} on the bonsai: up to {worst:.0f} s (target <= {limit:.0f} s: {met(worst <= limit)}), "
                     f"peak memory up to {memory:.2f} GB (target <= 8 GB: {met(memory <= 8)})"
                 )
+        dense = [
+            c[row] for (scene, _), c in results.items() if scene == "bonsai8" for row in c if "error" not in c[row]
+        ]
+        dense = [c for c in dense if "estimate_ratios" in c and c["estimate_ratios"]]
+        if dense:
+            worst = max(c["seconds"] for c in dense)
+            memory = max(c["peak_rss"] for c in dense) / 1e9
+            ratios = [r for c in dense for r in c["estimate_ratios"]]
+            within = max(max(ratios), 1 / min(ratios)) <= TARGET_ESTIMATE
+            lines.append(
+                f"- the bonsai x 8 (2.18M splats): up to {worst:.0f} s (target <= {TARGET_DENSE_S:.0f} s: "
+                f"{met(worst <= TARGET_DENSE_S)}), peak memory up to {memory:.2f} GB (target <= {TARGET_DENSE_GB:g} GB: "
+                f"{met(memory <= TARGET_DENSE_GB)}); the time left as estimated from stage 2 on, over the truth: "
+                f"{min(ratios):.2f}-{max(ratios):.2f} (target within {TARGET_ESTIMATE}x: {met(within)})"
+            )
     return lines
 
 

@@ -116,3 +116,12 @@ def test_a_run_with_proxies_colours_what_it_did_without_them():
     for camera in views:
         a, b = render_scene(with_.scene, camera).rgb, render_scene(without.scene, camera).rgb
         assert float((a - b).abs().mean()) < 0.03, float((a - b).abs().mean())
+
+
+def test_the_fit_takes_its_maps_from_the_selections_renders_and_draws_the_same():
+    scene, views = mixed_scene(), cameras()
+    style = np.random.default_rng(4).uniform(0, 1, (40, 56, 3)).astype(np.float32)
+    config, plan = preset_run("preview", stages=1, proposal_width=64, proposal_height=48)
+    chosen = stylize(scene, views, style, config, plan=plan)  # 3 cameras, up to 16 views: the selection's renders
+    given = stylize(scene, views, style, config, plan=plan, views=chosen.selection.indices)  # rendered again
+    assert np.array_equal(chosen.scene.sh_dc, given.scene.sh_dc)

@@ -105,12 +105,18 @@ def seen_gaussians(
     settings: RasterSettings,
     geometry: bool,
     each_view: Callable[[int], None] | None = None,  # (views rendered so far), after each view: progress
+    rendered: list[ColorOnlyRenderer] | None = None,  # the cameras' colour-only renderers, if made already
 ) -> tuple[torch.Tensor, list[ColorOnlyRenderer] | None]:
     """The sorted indices [M] of the Gaussians the cameras see, and with geometry frozen the cameras'
     full-scene colour-only renderers (which found them, so the fit needs no second rasterization)."""
     means, quats, log_scales, logits = geometry_tensors(scene)
     fast = None
-    if geometry:
+    if rendered is not None and not geometry:
+        fast = list(rendered)
+        if each_view is not None:
+            each_view(len(fast))
+        seen_mask = torch.stack([f.seen for f in fast]).any(0)
+    elif geometry:
         seen_mask = torch.zeros(len(scene), dtype=torch.bool)
         for done, camera in enumerate(cameras, 1):
             with torch.no_grad():

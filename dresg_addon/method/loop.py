@@ -261,6 +261,7 @@ class Stylization:
     def select_views(self, cameras: Sequence[Camera], views: Sequence[int] | None) -> None:
         """Sec. 4.3: the active views by capped coverage (Eqs. 13-15), or the given ones."""
         hooks, nan = self.hooks, float("nan")
+        self.rendered: list | None = None  # the active views' colour-only renderers, when the selection made them
         if views is None:
             hooks.model.set_counts(cameras=len(cameras), views=min(len(cameras), self.config.max_views or len(cameras)))
 
@@ -268,6 +269,10 @@ class Stylization:
                 hooks.report(0, done, total, "select", nan, f"selecting views: {done}/{total} cameras rendered")
 
             each_camera(0, len(cameras))
+            # When every camera may be active, the fit's colour-only maps come from the selection's renders (the
+            # most the fit holds anyway); with more cameras than views, the chosen ones are rendered again.
+            cap = self.config.max_views or len(cameras)
+            renderers = [] if not self.config.optimize_geometry and len(cameras) <= cap else None
             self.selection = view_selection.select_active_views(
                 self.scene,
                 cameras,
@@ -276,7 +281,10 @@ class Stylization:
                 cancel=hooks.cancel,
                 mask=self.mask,
                 near=self.raster.near,
+                renderers=renderers,
             )
+            if renderers is not None:
+                self.rendered = [renderers[v] for v in self.selection.indices]
         else:
             hooks.model.set_counts(cameras=0, views=len(views))
             bad = [v for v in views if not 0 <= v < len(cameras)]
@@ -306,6 +314,7 @@ class Stylization:
             return
         self.hooks.note(split.summary)
         self.scene, self.parents = split.scene, split.parent_index
+        self.rendered = None  # the selection rendered the scene before the split
         if self.mask is not None:  # a selected splat's children are selected
             self.mask = self.mask[self.parents]
 
@@ -344,7 +353,10 @@ class Stylization:
         ``each_view(done)`` after each view's render (the last one: the fit's set-up follows)."""
         config, say = self.config, self.hooks.say
         raster = self.raster
-        seen, fast = seen_gaussians(self.scene, self.cameras, raster, config.optimize_geometry, each_view)
+        seen, fast = seen_gaussians(
+            self.scene, self.cameras, raster, config.optimize_geometry, each_view, self.rendered
+        )
+        self.rendered = None  # the renderer narrows them to the fit's columns
         left_out = len(self.scene) - seen.numel()
         if self.mask is not None:
             seen = seen[torch.from_numpy(self.mask)[seen]]

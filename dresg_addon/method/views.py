@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..raster import RasterSettings, geometry_tensors, render
+from ..raster import ColorOnlyRenderer, RasterSettings, geometry_tensors, render
 from ..scene.camera import Camera
 from ..scene.gaussians import GaussianScene
 from ..util.errors import CameraError, CancelledError, ConfigError, NumericalError
@@ -266,21 +266,28 @@ def visibility_matrix(
     progress: Callable[[int, int], None] | None = None,
     cancel: threading.Event | None = None,
     device: str | torch.device = "cpu",
+    renderers: list | None = None,
 ) -> torch.Tensor:
     """w [V, N] (sparse COO, on the CPU): each Gaussian's depth-consistent visible weight sum_p T alpha in each
     view (Sec. 4.3), rendered on ``device``.
 
     ``progress(done, total)`` is called once per camera, after its render (done = 1 .. total); setting ``cancel``
-    stops with CancelledError.
+    stops with CancelledError. Given a list, ``renderers`` gets each camera's colour-only renderer from the same
+    render (:class:`~dresg_addon.raster.ColorOnlyRenderer`), so that a fit of these views renders none again.
     """
     means, quats, log_scales, logits = (t.to(device) for t in geometry_tensors(scene))
     colors = torch.zeros_like(means)
     rows, cols, vals = [], [], []
+    keep = renderers is not None
     for v, camera in enumerate(cameras):
         if cancel is not None and cancel.is_set():
             raise CancelledError("view selection cancelled")
         with torch.no_grad():
-            out = render(means, quats, log_scales, logits, colors, camera, settings, visibility="depth_consistent")
+            out = render(
+                means, quats, log_scales, logits, colors, camera, settings, "depth_consistent", keep_contributions=keep
+            )
+        if keep:
+            renderers.append(ColorOnlyRenderer(means, quats, log_scales, logits, camera, settings, output=out))
         visibility = out.visibility.cpu()
         nz = torch.nonzero(visibility > 0).squeeze(-1)
         rows.append(torch.full_like(nz, v))
@@ -303,6 +310,7 @@ def select_active_views(
     mask: np.ndarray | None = None,  # [N] bool: only these splats count (a stylized selection)
     device: str | torch.device = "cpu",  # where the coverage renders run
     near: float | None = None,  # the near plane, for a scene in tiny units (None: the rasterizer's)
+    renderers: list | None = None,  # gets every camera's colour-only renderer (visibility_matrix)
 ) -> ActiveViews:
     """Sec. 4.3: greedy capped-coverage selection (Eqs. 13-15) on the rasterizer's visibility weights.
 
@@ -312,7 +320,9 @@ def select_active_views(
     """
     if not cameras:
         raise CameraError("no cameras: add cameras to the scene, give a cameras file, or use orbit cameras")
-    w = visibility_matrix(scene, cameras, config.raster(near), progress=progress, cancel=cancel, device=device)
+    w = visibility_matrix(
+        scene, cameras, config.raster(near), progress=progress, cancel=cancel, device=device, renderers=renderers
+    )
     if mask is not None:  # splats outside the selection are seen by no view, as far as coverage goes
         keep = torch.from_numpy(np.asarray(mask, bool))[w.indices()[1]]
         w = torch.sparse_coo_tensor(  # a coalesced tensor's entries, some left out: still coalesced

@@ -583,12 +583,21 @@ class ColorOnlyRenderer:
     """
 
     def __init__(
-        self, means, quats, log_scales, opacity_logits, camera: Camera, settings: RasterSettings = RasterSettings()
+        self,
+        means,
+        quats,
+        log_scales,
+        opacity_logits,
+        camera: Camera,
+        settings: RasterSettings = RasterSettings(),
+        output: RenderOutput | None = None,  # this camera's render with its contributions kept, if one was made
     ):
         n = means.shape[0]
-        with torch.no_grad():
-            dummy = torch.zeros(n, 3, dtype=torch.float32, device=means.device)
-            out = render(means, quats, log_scales, opacity_logits, dummy, camera, settings, keep_contributions=True)
+        out = output
+        if out is None or out.contributions is None:
+            with torch.no_grad():
+                dummy = torch.zeros(n, 3, dtype=torch.float32, device=means.device)
+                out = render(means, quats, log_scales, opacity_logits, dummy, camera, settings, keep_contributions=True)
         self.camera = camera
         self.shape = (camera.height, camera.width)
         empty = torch.zeros(0, dtype=torch.long, device=means.device)
