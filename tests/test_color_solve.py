@@ -305,6 +305,20 @@ def test_best_views_leave_splats_no_view_draws_alone_and_refuse_a_sharpness_that
             best_view_colors(views, targets, joint, settings, sharpness)
 
 
+def test_best_views_blend_block_by_block_exactly_as_all_at_once(small, monkeypatch):
+    from dresg_addon.method import color_solve
+
+    _, views = small
+    n = views.energy.numel()
+    rng = np.random.default_rng(10)
+    painted = [views.images(torch.from_numpy(rng.uniform(0, 1, (n, 3)).astype(np.float32)))[v] for v in range(3)]
+    joint = torch.from_numpy(rng.uniform(0, 1, (n, 3)).astype(np.float32))
+    settings = ColorSolveSettings(anchor=0.3)
+    whole = color_solve.best_view_colors(views, painted, joint, settings, 4.0)
+    monkeypatch.setattr(color_solve, "BLEND_BLOCK", 7)
+    assert torch.equal(color_solve.best_view_colors(views, painted, joint, settings, 4.0), whole)
+
+
 def test_a_map_of_only_some_columns_draws_those_splats_and_no_others(small):
     _, views = small
     m = views.maps[0]

@@ -386,6 +386,49 @@ def test_colour_only_restrict_to_seen_gaussians():
         ColorOnlyRenderer(means, quats, log_scales, logits, cam).restrict(keep[1:])
 
 
+def test_the_colour_only_map_holds_the_renders_samples_once():
+    """The samples live only in the map's CSR matrix: the contributions derived from it are the render's, W^T is
+    built on the first product that needs it, and a filtered, restricted or masked map draws what its samples do."""
+    means, quats, log_scales, logits, colors = tensors(random_scene(300, 8), dtype=torch.float32)
+    cam = camera(64, 48, 50.0)
+    settings = RasterSettings(band_pairs=2_000)  # several bands
+    pixel, gauss, weight = render(
+        means, quats, log_scales, logits, colors, cam, settings, keep_contributions=True
+    ).contributions
+    fast = ColorOnlyRenderer(means, quats, log_scales, logits, cam, settings)
+    for got, expected in zip(fast.contributions(), (pixel, gauss, weight)):
+        assert got.dtype == expected.dtype and torch.equal(got, expected)
+    fast(colors)
+    assert fast.map._transposed is None  # rendering alone never transposes
+
+    def dense(p, g, w, n):
+        return torch.zeros(48 * 64, n, dtype=F64).index_put_((p, g), w.double(), accumulate=True)
+
+    y = torch.rand(48 * 64, 3, generator=torch.Generator().manual_seed(1))
+    strong = weight >= 1e-3
+    faint = fast.linear_map(1e-3)
+    assert faint.nnz == int(strong.sum()) < fast.map.nnz
+    for m, w in (
+        (faint, dense(pixel[strong], gauss[strong], weight[strong], 300)),
+        (fast.map, dense(pixel, gauss, weight, 300)),
+    ):
+        torch.testing.assert_close(m.matvec(colors).double(), w @ colors.double(), atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(m.rmatvec(y).double(), w.T @ y.double(), atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(m.column_energy(), w.square().sum(0), atol=1e-6, rtol=0)
+        torch.testing.assert_close(m.squared_rmatvec(y).double(), w.square().T @ y.double(), atol=1e-5, rtol=1e-5)
+        keep = torch.arange(300) % 3 > 0
+        masked = m.only_columns(keep)
+        torch.testing.assert_close(masked.rmatvec(y).double(), (w * keep).T @ y.double(), atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(masked.column_energy(), (w * keep).square().sum(0), atol=1e-6, rtol=0)
+
+    keep = torch.arange(0, 300, 2)  # half the splats the view draws kept, the others in fixed colours
+    restricted = ColorOnlyRenderer(means, quats, log_scales, logits, cam, settings).restrict(keep, colors)
+    torch.testing.assert_close(restricted(colors[keep]), fast(colors), atol=1e-5, rtol=1e-5)
+    kept = gauss % 2 == 0
+    p, g, w = restricted.contributions()
+    assert torch.equal(p, pixel[kept]) and torch.equal(g, gauss[kept] // 2) and torch.equal(w, weight[kept])
+
+
 def test_a_render_is_freed_with_its_outputs():
     # An output kept on the autograd context outside save_for_backward forms a cycle through its grad_fn
     # that is never freed: every optimisation step would leak a view's samples (1 GB at 1M Gaussians).

@@ -500,39 +500,66 @@ class _SparseColor(torch.autograd.Function):
     """rgb = W @ colors for a cached sparse W [P, N]; the backward is W^T @ grad."""
 
     @staticmethod
-    def forward(ctx, colors, matrix, matrix_t):
-        ctx.matrix_t = matrix_t
-        return torch.sparse.mm(matrix, colors)
+    def forward(ctx, colors, linear_map):
+        ctx.linear_map = linear_map
+        return torch.sparse.mm(linear_map.matrix, colors)
 
     @staticmethod
     def backward(ctx, grad):
-        return torch.sparse.mm(ctx.matrix_t, grad.contiguous()), None, None
+        return ctx.linear_map.rmatvec(grad), None
+
+
+def _index_dtype(*sizes: int) -> torch.dtype:
+    # 32-bit indices where they fit: the products read every index, and half the bytes make them ~40% faster.
+    return torch.int32 if max(sizes) < 2**31 - 1 else torch.int64
+
+
+def _rows(crow: torch.Tensor) -> torch.Tensor:  # CSR row pointers [R + 1] -> each entry's row [nnz], their dtype
+    counts = torch.diff(crow.long())
+    return torch.repeat_interleave(torch.arange(counts.numel(), dtype=crow.dtype), counts, output_size=int(crow[-1]))
 
 
 class SparseColorMap:
-    """The linear map from colours to an image, W [P, N] (each entry a sample's T * alpha), as CSR matrices
-    both ways: ``matvec`` W c, ``rmatvec`` W^T y, ``column_energy`` and ``squared_rmatvec`` for solvers."""
+    """The linear map from colours to an image, W [P, N] (each entry a sample's T * alpha), held once as a CSR
+    matrix sorted by pixel (int32 indices where they fit): ``matvec`` W c, ``rmatvec`` W^T y, ``column_energy``
+    and ``squared_rmatvec`` for solvers. W^T, a second copy, is built on the first product that needs it: a map
+    that only renders never holds it."""
 
-    def __init__(self, pixel: torch.Tensor, gauss: torch.Tensor, weight: torch.Tensor, n_pix: int, n_columns: int):
-        self.shape = (n_pix, n_columns)
-        self._gauss, self._weight = gauss, weight
-        # 32-bit indices where they fit: the products read every index, and half the bytes make them ~40% faster.
-        index = torch.int32 if max(n_pix, n_columns, weight.numel()) < 2**31 - 1 else torch.int64
+    def __init__(self, crow: torch.Tensor, col: torch.Tensor, values: torch.Tensor, shape: tuple[int, int]):
+        self.shape = shape
+        self.matrix = torch.sparse_csr_tensor(crow, col, values, shape, check_invariants=False)
+        self._transposed: torch.Tensor | None = None
+
+    @classmethod
+    def from_samples(
+        cls, pixel: torch.Tensor, column: torch.Tensor, weight: torch.Tensor, n_pix: int, n_columns: int
+    ) -> SparseColorMap:
+        """The map of samples (pixel, column, T * alpha) sorted by pixel."""
+        index = _index_dtype(n_pix, n_columns, weight.numel())
         crow = torch.zeros(n_pix + 1, dtype=torch.long, device=pixel.device)
         crow[1:] = torch.cumsum(torch.bincount(pixel, minlength=n_pix), 0)
-        self.matrix = torch.sparse_csr_tensor(
-            crow.to(index), gauss.to(index), weight, (n_pix, n_columns), check_invariants=False
-        )
-        order = torch.sort(gauss, stable=True).indices
-        crow_t = torch.zeros(n_columns + 1, dtype=torch.long, device=pixel.device)
-        crow_t[1:] = torch.cumsum(torch.bincount(gauss, minlength=n_columns), 0)
-        self.matrix_t = torch.sparse_csr_tensor(
-            crow_t.to(index), pixel[order].to(index), weight[order], (n_columns, n_pix), check_invariants=False
-        )
+        return cls(crow.to(index), column.to(index), weight, (n_pix, n_columns))
 
     @property
     def nnz(self) -> int:
-        return int(self._weight.numel())
+        return int(self.matrix.values().numel())
+
+    @property
+    def matrix_t(self) -> torch.Tensor:  # W^T [N, P] as CSR, each row's entries in pixel order
+        if self._transposed is None:
+            crow, col, values = self.matrix.crow_indices(), self.matrix.col_indices(), self.matrix.values()
+            order = torch.sort(col, stable=True).indices
+            crow_t = torch.zeros(self.shape[1] + 1, dtype=torch.long, device=col.device)
+            crow_t[1:] = torch.cumsum(torch.bincount(col, minlength=self.shape[1]), 0)
+            self._transposed = torch.sparse_csr_tensor(
+                crow_t.to(col.dtype), _rows(crow)[order], values[order], self.shape[::-1], check_invariants=False
+            )
+        return self._transposed
+
+    def samples(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """W's entries: (pixel, column) as int64 and T * alpha, sorted by pixel."""
+        crow, col = self.matrix.crow_indices(), self.matrix.col_indices()
+        return _rows(crow.long()), col.long(), self.matrix.values()
 
     def matvec(self, colors: torch.Tensor) -> torch.Tensor:  # [N, K] -> [P, K]
         return torch.sparse.mm(self.matrix, colors.contiguous())
@@ -541,31 +568,37 @@ class SparseColorMap:
         return torch.sparse.mm(self.matrix_t, pixels.contiguous())
 
     def column_energy(self) -> torch.Tensor:  # [N] float64: sum over pixels of W[p, i]^2
-        energy = torch.zeros(self.shape[1], dtype=torch.float64, device=self._weight.device)
-        return energy.index_add_(0, self._gauss, self._weight.double().square())
+        values = self.matrix.values()
+        energy = torch.zeros(self.shape[1], dtype=torch.float64, device=values.device)
+        return energy.index_add_(0, self.matrix.col_indices(), values.double().square())
 
     def squared_rmatvec(self, pixels: torch.Tensor) -> torch.Tensor:  # [P, K] -> [N, K]: (W o W)^T y
         """Per Gaussian, sum over pixels of W[p, i]^2 y[p]: the diagonal of W^T diag(y) W (a preconditioner)."""
-        squared = torch.sparse_csr_tensor(
-            self.matrix_t.crow_indices(),
-            self.matrix_t.col_indices(),
-            self.matrix_t.values().square(),
-            self.matrix_t.shape,
-            check_invariants=False,
-        )
+        matrix_t = self.matrix_t
+        squared = self._with_values(matrix_t, matrix_t.values().square())
         return torch.sparse.mm(squared, pixels.contiguous())
 
     def only_columns(self, keep: torch.Tensor) -> SparseColorMap:  # keep: [N] bool
         """The map with every column but ``keep`` weighing 0: the image those Gaussians' colours draw, the others'
         samples left out (not skipped over: the transmittance each sample has stays as the full render's)."""
-        out = object.__new__(SparseColorMap)
-        out.shape = self.shape
-        out._gauss = self._gauss
-        out._weight = self._weight * keep[self._gauss].to(self._weight.dtype)
-        rows_t = torch.repeat_interleave(keep, torch.diff(self.matrix_t.crow_indices().long()))
-        out.matrix = self._with_values(self.matrix, out._weight)
-        out.matrix_t = self._with_values(self.matrix_t, self.matrix_t.values() * rows_t.to(self._weight.dtype))
+        matrix = self.matrix
+        values = matrix.values() * keep[matrix.col_indices()].to(matrix.values().dtype)
+        out = SparseColorMap(matrix.crow_indices(), matrix.col_indices(), values, self.shape)
+        if self._transposed is not None:  # masked in place of sorted again
+            rows_t = torch.repeat_interleave(keep, torch.diff(self._transposed.crow_indices().long()))
+            out._transposed = self._with_values(self._transposed, self._transposed.values() * rows_t.to(values.dtype))
         return out
+
+    def select(self, keep: torch.Tensor, columns: torch.Tensor | None = None, n_columns: int = 0) -> SparseColorMap:
+        """The map of the samples ``keep`` ([nnz] bool) alone; with ``columns`` ([nnz], each sample's new column of
+        ``n_columns``) renumbered."""
+        crow, col = self.matrix.crow_indices(), self.matrix.col_indices()
+        kept_before = torch.zeros(keep.numel() + 1, dtype=torch.long, device=keep.device)
+        torch.cumsum(keep, 0, out=kept_before[1:])
+        shape = self.shape if columns is None else (self.shape[0], n_columns)
+        index = _index_dtype(*shape, keep.numel())
+        col = col[keep] if columns is None else columns[keep]
+        return SparseColorMap(kept_before[crow.long()].to(index), col.to(index), self.matrix.values()[keep], shape)
 
     @staticmethod
     def _with_values(matrix: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
@@ -579,7 +612,7 @@ class ColorOnlyRenderer:
 
     With means, scales, rotations and opacities fixed, the image is linear in the colours:
     rgb = W c + T_final * background, where W [H*W, N] holds each sample's T * alpha. W is computed once
-    per view and a colour step is a sparse multiply, forward and backward.
+    per view (held once, as :class:`SparseColorMap`) and a colour step is a sparse multiply, forward and backward.
     """
 
     def __init__(
@@ -602,7 +635,7 @@ class ColorOnlyRenderer:
         self.shape = (camera.height, camera.width)
         empty = torch.zeros(0, dtype=torch.long, device=means.device)
         # Contributions arrive sorted by pixel (bands in order, pixels sorted within each band): CSR rows.
-        self._pixel, self._gauss, self._weight = out.contributions or (empty, empty, empty.float())
+        pixel, gauss, weight = out.contributions or (empty, empty, empty.float())
         bg = torch.tensor(settings.background, dtype=torch.float32, device=means.device)
         self.background = (1.0 - out.alpha.reshape(-1, 1).float()) * bg  # [H*W, 3]
         self.alpha = out.alpha.float()
@@ -610,11 +643,8 @@ class ColorOnlyRenderer:
         self.n_pairs = out.n_pairs
         # Gaussians this view sees at all: the colour step can leave out the rest.
         self.seen = torch.zeros(n, dtype=torch.bool, device=means.device)
-        self.seen[self._gauss] = True
-        self._build(n)
-
-    def _build(self, n_columns: int) -> None:
-        self.map = SparseColorMap(self._pixel, self._gauss, self._weight, self.shape[0] * self.shape[1], n_columns)
+        self.seen[gauss] = True
+        self.map = SparseColorMap.from_samples(pixel, gauss, weight, self.shape[0] * self.shape[1], n)
 
     def restrict(self, keep: torch.Tensor, fixed_colors: torch.Tensor | None = None) -> ColorOnlyRenderer:
         """Use only the Gaussians ``keep`` (sorted indices): colours become [len(keep), 3]. Without
@@ -622,48 +652,48 @@ class ColorOnlyRenderer:
         colour), the samples of the others are drawn in those colours into the constant background term."""
         column = torch.full((self.seen.numel(),), -1, dtype=torch.long, device=keep.device)
         column[keep] = torch.arange(keep.numel(), device=keep.device)
-        columns = column[self._gauss]
-        dropped = columns < 0
-        if bool(dropped.any()):
+        gauss = self.map.matrix.col_indices()
+        columns = column[gauss]
+        kept = columns >= 0
+        if not bool(kept.all()):
             if fixed_colors is None:
                 raise ValueError("restrict: every Gaussian the view sees must be kept")
-            contribution = self._weight[dropped, None] * fixed_colors[self._gauss[dropped]].float()
-            self.background = self.background.index_add(0, self._pixel[dropped], contribution)
-            self._pixel, self._weight, columns = self._pixel[~dropped], self._weight[~dropped], columns[~dropped]
-        self._gauss = columns
+            dropped = ~kept
+            pixel = _rows(self.map.matrix.crow_indices().long())[dropped]
+            contribution = self.map.matrix.values()[dropped, None] * fixed_colors[gauss[dropped]].float()
+            self.background = self.background.index_add(0, pixel, contribution)
+        self.map = self.map.select(kept, columns, keep.numel())
         self.seen = self.seen[keep]
-        self._build(keep.numel())
         return self
 
     def merge_columns(self, column: torch.Tensor, count: int) -> ColorOnlyRenderer:
         """Columns shared: Gaussian i (a current column) becomes column ``column[i]`` of ``count``, its samples of one
         pixel summed with those of the others there. The image of colours c is then exactly that of the Gaussians
         each painted c[column[i]]; the samples stay sorted by pixel."""
-        key = self._pixel * count + column[self._gauss]
-        keys, inverse = torch.unique(key, sorted=True, return_inverse=True)
-        self._weight = torch.zeros(keys.numel(), dtype=self._weight.dtype).index_add_(0, inverse, self._weight)
-        self._pixel, self._gauss = keys // count, keys % count
+        pixel, gauss, weight = self.map.samples()
+        keys, inverse = torch.unique(pixel * count + column[gauss], sorted=True, return_inverse=True)
+        del pixel, gauss
+        weight = torch.zeros(keys.numel(), dtype=weight.dtype).index_add_(0, inverse, weight)
+        del inverse
+        gauss = keys % count
         self.seen = torch.zeros(count, dtype=torch.bool, device=keys.device)
-        self.seen[self._gauss] = True
-        self._build(count)
+        self.seen[gauss] = True
+        self.map = SparseColorMap.from_samples(keys // count, gauss, weight, self.map.shape[0], count)
         return self
 
     def contributions(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """W's entries: (pixel, column, T * alpha) of every sample, sorted by pixel."""
-        return self._pixel, self._gauss, self._weight
+        """W's entries: (pixel, column, T * alpha) of every sample, sorted by pixel (derived from the map)."""
+        return self.map.samples()
 
     def linear_map(self, min_weight: float = 0.0) -> SparseColorMap:
         """W itself, or W without the samples whose T * alpha is below ``min_weight`` (deep, faint samples: on the
         bonsai the 39% of samples under 1e-3 carry 0.5% of the weight), for solvers that apply it many times."""
         if min_weight <= 0.0:
             return self.map
-        keep = self._weight >= min_weight
-        return SparseColorMap(
-            self._pixel[keep], self._gauss[keep], self._weight[keep], self.map.shape[0], self.map.shape[1]
-        )
+        return self.map.select(self.map.matrix.values() >= min_weight)
 
     def __call__(self, colors: torch.Tensor) -> torch.Tensor:  # [N, 3] -> [H, W, 3]
-        rgb = _SparseColor.apply(colors.float(), self.map.matrix, self.map.matrix_t) + self.background
+        rgb = _SparseColor.apply(colors.float(), self.map) + self.background
         return rgb.reshape(*self.shape, 3)
 
 
