@@ -236,3 +236,46 @@ def test_the_synth_backend_prices_its_full_resolution_stages_above_its_coarse_on
     costs = [backend.relative_cost(stage, 320, 448) for stage in stage_timesteps(12, 1)]
     assert all(math.isfinite(c) and c > 0 for c in costs) and costs == sorted(costs)
     assert costs[-1] == pytest.approx(1.35 * costs[0], rel=0.05)  # 1.28-1.48x, measured
+
+
+def test_the_time_left_expects_the_early_stop_and_prices_the_marks_of_the_stages_that_carry_them():
+    """A run of 6 stages that may stop after stage 4 (the first at full detail), whose stages 4 on carry marks: 1 s a
+    camera, a view's proposal, a solve round; 3 s for a stage's marks. Stopped after 4, the estimate from stage 2 on
+    is within 1.25x of the truth; going on, each further stage is counted as it starts."""
+    clock, reports = Clock(), []
+    model = ProgressModel(clock)
+
+    def report(phase, stage, step, steps, seconds):
+        fraction, left = model.update(phase, stage, step, steps)
+        reports.append((phase, stage, step, clock.now, left))
+        clock.now += seconds
+
+    model.plan(6, False)
+    model.set_counts(cameras=3, views=3)
+    model.set_marks_stages([4, 5, 6])
+    model.expect_stop(4)
+    for camera in range(4):
+        report("select", 0, camera, 3, 1.0 if camera < 3 else 0.0)
+    report("setup", 0, 0, 1, 3.0)
+    for stage in range(1, 5):
+        for view in range(3):
+            report("proposal", stage, view, 3, 1.0)
+        if stage >= 4:
+            report("marks", stage, 0, 1, 3.0)
+        report("fit", stage, 0, 1, 3.0)
+        report("feedback", stage, 0, 1, 1.0)
+    report("done", 0, 1, 1, 0.0)
+    total = reports[-1][3]
+    for phase, stage, step, now, left in reports:
+        if phase == "proposal" and step == 0 and stage >= 2:
+            assert 1 / 1.25 <= left / (total - now) <= 1.25, (stage, left, total - now)
+    # Past the expected stop, the stage it goes on to counts, with its marks; the ones after it do not yet.
+    going_on = ProgressModel(Clock())
+    going_on.plan(6, False)
+    going_on.set_marks_stages([4, 5, 6])
+    going_on.expect_stop(4)
+    assert ("feedback", 4) in going_on.parts() and ("proposal", 5) not in going_on.parts()
+    going_on.update("proposal", 5, 0, 3)
+    parts = going_on.parts()
+    assert ("proposal", 5) in parts and ("marks", 5) in parts and ("proposal", 6) not in parts
+    assert ("marks", 3) not in parts

@@ -98,13 +98,13 @@ class ProgressLines:
 
 # --- The fraction done and the time left ------------------------------------------------------------------------
 
-STAGE_PHASES = ("proposal", "fit", "feedback")
+STAGE_PHASES = ("proposal", "marks", "fit", "feedback")  # "marks" only in the stages that carry them
 # What a phase costs before the run has timed it, per view (per candidate camera for "select"), in the time of one
 # coverage render of one camera: the bar's shares until then. From the bonsai x Starry Night, preview, 16 orbit
 # cameras, 8 active views, 2 cores: selection 0.8 s a camera, set-up 2.1 s a view (finding the seen splats, the
 # colour fit's matrices, the base renders' style distance), a proposal 0.7 s, a solved fit 0.7 s, the feedback
 # (style distance, re-encoding) 0.3 s. :func:`prior_costs` scales them for Adam fits and sd15 proposals.
-PRIOR_COSTS = {"select": 1.0, "setup": 2.7, "proposal": 0.9, "fit": 0.9, "feedback": 0.35, "post": 0.9}
+PRIOR_COSTS = {"select": 1.0, "setup": 2.7, "proposal": 0.9, "marks": 0.5, "fit": 0.9, "feedback": 0.35, "post": 0.9}
 # A phase not yet timed is priced like one that has been, in the ratio of their prior costs: the post stage's fit
 # like a stage's fit.
 PRICED_LIKE = {"post": "fit"}
@@ -161,6 +161,7 @@ class ProgressModel:
         self.costs = dict(PRIOR_COSTS)
         self.stage_costs: dict[int, float] = {}  # stage -> its proposals' relative cost (ProposalBackend.relative_cost)
         self.expected_last: int | None = None  # the stage the run is expected to end after (None: the last)
+        self.marks_stages: set[int] = set()  # the stages that carry the marks (a part of their own)
         self.timed: dict[tuple[str, int], float] = {}  # (phase, stage) -> seconds, for the parts that ended
         self.current: tuple[str, int] | None = None
         self.current_started = 0.0
@@ -178,6 +179,10 @@ class ProgressModel:
         """Each stage's proposals' relative cost, stage 1 first: a stage not run yet is priced by it, so the fine
         stages of a coarse-to-fine backend are not priced as its coarse ones."""
         self.stage_costs = {n: float(c) for n, c in enumerate(costs, 1) if math.isfinite(c) and c > 0}
+
+    def set_marks_stages(self, stages) -> None:
+        """The stages whose targets take the splats' carried marks: each has a "marks" part."""
+        self.marks_stages = set(stages)
 
     def expect_stop(self, stage: int | None) -> None:
         """The first stage after which the early stop may end the run (None: it runs every stage)."""
@@ -205,9 +210,10 @@ class ProgressModel:
             return 0
         if phase == "setup":
             return 1
+        per_stage = len(STAGE_PHASES)
         if phase in STAGE_PHASES:
-            return 2 + 3 * (min(max(stage, 1), self.stages) - 1) + STAGE_PHASES.index(phase)
-        return 2 + 3 * self.stages + (0 if phase == "post" else 1)  # post, done
+            return 2 + per_stage * (min(max(stage, 1), self.stages) - 1) + STAGE_PHASES.index(phase)
+        return 2 + per_stage * self.stages + (0 if phase == "post" else 1)  # post, done
 
     def parts(self) -> list[tuple[str, int]]:
         """This run's parts in order (stages before ``first_stage`` were done by the run it resumes)."""
@@ -217,7 +223,7 @@ class ProgressModel:
             reached = self.current[1] if self.current is not None and self.current[0] in STAGE_PHASES else 0
             last = min(max(self.expected_last, reached), self.stages)
         for stage in range(self.first_stage, last + 1):
-            parts += [(phase, stage) for phase in STAGE_PHASES]
+            parts += [(phase, stage) for phase in STAGE_PHASES if phase != "marks" or stage in self.marks_stages]
         if self.post:
             parts.append(("post", self.stages + 1))
         return parts

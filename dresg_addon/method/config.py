@@ -64,7 +64,7 @@ class Plan:
     carry_marks: bool = False
     # With geometry frozen, splats narrower than this many pixels in every active view share a colour per pixel-sized
     # cell during the fit (method/proxies.py); 0: every splat its own.
-    proxy_sigma: float = 1.0
+    proxy_sigma: float = 0.5
     ablation: Ablation = Ablation()
 
     def __post_init__(self) -> None:

@@ -451,6 +451,7 @@ class Stylization:
         self.brightness = scene_brightness(self.contents, self.coverages)
         self.backend = self.entry.make(self.config, self.plan, self.brightness, self.device)
         self.hooks.model.set_stage_costs([self.backend.relative_cost(s, *self.size) for s in self.stages])
+        self.hooks.model.set_marks_stages([s.index for s in self.stages if self.marks_wanted(s)])
         if self.plan.early_stop > 0:  # the first stage finish_stage may stop after
             may_stop = [s.index for s in self.stages[:-1] if self.backend.full_detail(s)]
             self.hooks.model.expect_stop(may_stop[0] if may_stop else None)
@@ -535,7 +536,7 @@ class Stylization:
                 "residual": (0.5 + 0.5 * residual).clamp(0, 1).permute(1, 2, 0).numpy(),
             }
         if self.carries_marks(stage):
-            painted, targets = self._carried_targets(targets)
+            painted, targets = self._carried_targets(targets, stage.index)
             for name, render, target in zip(self.names, painted, targets):
                 self.work.images[name]["marks"] = render.permute(1, 2, 0).numpy()
                 self.work.images[name]["target"] = target.permute(1, 2, 0).numpy()
@@ -551,10 +552,13 @@ class Stylization:
         fields = self.work.fields
         return self.marks_wanted(stage) and len(fields) == len(self.cameras) and all(f is not None for f in fields)
 
-    def _carried_targets(self, targets: list[torch.Tensor]) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    def _carried_targets(
+        self, targets: list[torch.Tensor], stage: int
+    ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """Each splat's painting coordinate from the view that owns it, each view painted as the splats carry the
         painting, and each target's fine band from that painting (marks.py); (the views' paintings, the targets)."""
         splats = self.state.seen.numel()
+        self.hooks.report(stage, 0, 1, "marks", float("nan"), "carrying the marks: each splat's vote")
         votes = []
         for fast, painting_field in zip(self.renderer.fast, self.work.fields):
             votes.append(vote_view(fast.contributions(), fast.shape, painting_field, splats))
