@@ -103,8 +103,10 @@ STAGE_PHASES = ("proposal", "marks", "fit", "feedback")  # "marks" only in the s
 # coverage render of one camera: the bar's shares until then. From the bonsai x Starry Night, preview, 16 orbit
 # cameras, 8 active views, 2 cores: selection 0.8 s a camera, set-up 2.1 s a view (finding the seen splats, the
 # colour fit's matrices, the base renders' style distance), a proposal 0.7 s, a solved fit 0.7 s, the feedback
-# (style distance, re-encoding) 0.3 s. :func:`prior_costs` scales them for Adam fits and sd15 proposals.
-PRIOR_COSTS = {"select": 1.0, "setup": 2.7, "proposal": 0.9, "marks": 0.5, "fit": 0.9, "feedback": 0.35, "post": 0.9}
+# (style distance, re-encoding) 0.3 s; a stage's carried marks (the views' votes, their paintings) 0.6 of standard's
+# solved fit with the best views on the bonsai x 8 (2.18M splats), the only stage that carries them mostly the last
+# one run. :func:`prior_costs` scales them for Adam fits and sd15 proposals.
+PRIOR_COSTS = {"select": 1.0, "setup": 2.7, "proposal": 0.9, "marks": 1.6, "fit": 0.9, "feedback": 0.35, "post": 0.9}
 # A phase not yet timed is priced like one that has been, in the ratio of their prior costs: the post stage's fit
 # like a stage's fit.
 PRICED_LIKE = {"post": "fit"}
