@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from test_marks import plane_cameras as cameras  # three views from above, 1.2 away, 60 px focal
 
 from dresg_addon.method.config import preset_run
 from dresg_addon.method.fitting import FitState, ViewRenderer, result_scene, seen_gaussians
@@ -12,7 +13,6 @@ from dresg_addon.method.loop import stylize
 from dresg_addon.method.proxies import proxy_columns
 from dresg_addon.raster import RasterSettings
 from dresg_addon.raster.rasterizer import ColorOnlyRenderer, geometry_tensors, render_scene
-from dresg_addon.scene.camera import Camera, look_at
 from dresg_addon.scene.gaussians import GaussianScene
 
 FINE = 6000  # about 4 to a pixel-sized cell
@@ -40,14 +40,6 @@ def mixed_scene(seed: int = 0) -> GaussianScene:
     )
 
 
-def cameras(width: int = 64, height: int = 48) -> list[Camera]:
-    out = []
-    for k, offset in enumerate((-0.3, 0.0, 0.3)):
-        eye = np.array([offset, 0.1 * k - 0.1, 1.2])
-        out.append(Camera(width, height, 60.0, 60.0, width / 2, height / 2, look_at(eye, [0, 0, 0]), f"top_{k}"))
-    return out
-
-
 def test_a_merged_map_draws_the_same_image_as_its_members_painted_their_cells_colour():
     scene, camera = mixed_scene(), cameras()[1]
     tensors = geometry_tensors(scene)
@@ -65,7 +57,7 @@ def test_fine_splats_share_cells_and_wide_ones_keep_their_own_column():
     scene, views = mixed_scene(), cameras()
     tensors = geometry_tensors(scene)
     drawn = [ColorOnlyRenderer(*tensors, c).seen for c in views]
-    proxies = proxy_columns(tensors[0], tensors[2], views, drawn)
+    proxies = proxy_columns(tensors[0], tensors[2], views, drawn, sigma_px=0.5)
     fine, wide = proxies.column[:FINE], proxies.column[FINE:]
     assert proxies.grouped and proxies.count < 0.5 * len(scene)
     assert torch.bincount(proxies.column, minlength=proxies.count)[wide].eq(1).all()  # alone in their columns
@@ -76,7 +68,7 @@ def test_fine_splats_share_cells_and_wide_ones_keep_their_own_column():
         assert float((members.amax(0) - members.amin(0)).norm()) * 60.0 / 1.2 < 1.8
     assert proxy_columns(tensors[0], tensors[2], views, drawn, sigma_px=0.0).grouped is False
     # A scene whose splats are all wider than a pixel gets none.
-    coarse = proxy_columns(tensors[0], tensors[2] + 3.0, views, drawn)
+    coarse = proxy_columns(tensors[0], tensors[2] + 3.0, views, drawn, sigma_px=0.5)
     assert not coarse.grouped and torch.equal(coarse.column, torch.arange(len(scene)))
 
 

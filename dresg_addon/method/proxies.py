@@ -25,7 +25,6 @@ import torch
 
 from ..scene.camera import Camera
 
-PROXY_SIGMA_PX = 0.5  # a splat whose largest screen sigma is below this in every active view shares a cell
 PROXY_CELL_PX = 1.0  # a cell's side, in pixels of the view that sees it closest
 
 
@@ -67,7 +66,7 @@ def proxy_columns(
     log_scales: torch.Tensor,  # [M, 3]
     cameras: Sequence[Camera],
     drawn: Sequence[torch.Tensor],  # V x [M] bool
-    sigma_px: float = PROXY_SIGMA_PX,
+    sigma_px: float,  # the plan's proxy_sigma
     cell_px: float = PROXY_CELL_PX,
 ) -> ProxyColumns:
     """The columns of the colour fit: one per pixel-sized cell of splats narrower than ``sigma_px`` in every view
