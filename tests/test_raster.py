@@ -322,6 +322,44 @@ def test_non_finite_inputs_are_skipped():
     assert np.abs(out.rgb.detach().numpy() - ref["rgb"]).max() < 1e-5
 
 
+FROZEN_CASES = {  # scene -> (log-scales, quaternions) overrides: the extreme cases of the projection
+    "random": (None, None),
+    "points 1e-7": (np.full((40, 3), np.log(1e-7)), None),
+    "huge 1e4": (np.full((40, 3), np.log(1e4)), None),
+    "needles 1e6": (np.log(np.tile([1.0, 1e-6, 1e-3], (40, 1))), None),
+    "degenerate quaternions": (None, np.tile([[0.0, 0.0, 0.0, 0.0], [1e-20, 0.0, 0.0, 0.0]], (20, 1))),
+}
+
+
+@pytest.mark.parametrize("case", list(FROZEN_CASES))
+def test_frozen_geometry_projects_as_the_differentiable_path(case):
+    """Without a gradient and with the splats' covariances made once, the projection takes a shorter float64 path:
+    the same Gaussians, centres, conics and covariances to ~1e-12, and the render matches the reference."""
+    from dresg_addon.raster.projection import project_gaussians, splat_covariances
+
+    means, quats, log_scales, logits, colors = random_scene(40, 5)
+    log_scales = FROZEN_CASES[case][0] if FROZEN_CASES[case][0] is not None else log_scales
+    quats = FROZEN_CASES[case][1] if FROZEN_CASES[case][1] is not None else quats
+    cam = camera()
+    w2c = torch.tensor(cam.world_to_camera, dtype=F64)
+    args = (w2c, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, 0.01)
+    m, q, s = tensors((means, quats, log_scales))
+    covariances = splat_covariances(q, s, F64)
+    with torch.no_grad():
+        frozen = project_gaussians(m, q, s, *args, None, covariances)
+    grad = project_gaussians(m, q.clone().requires_grad_(True), s, *args, None, covariances)
+    assert frozen.index.numel() > 0 and torch.equal(frozen.index, grad.index)
+    for name in ("mx", "my", "conic_a", "conic_b", "conic_c", "cxx", "cxy", "cyy", "depth"):
+        a, b = getattr(frozen, name), getattr(grad, name).detach()
+        assert torch.isfinite(a).all(), name
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-12 * float(b.abs().max())), name
+    scene = (means, quats, log_scales, logits, colors)
+    out = render(*tensors(scene), cam, RasterSettings(), "all", covariances=covariances)
+    ref = reference_render(*scene, cam)
+    assert np.abs(out.rgb.numpy() - ref["rgb"]).max() <= 1e-5
+    assert np.abs(out.alpha.numpy() - ref["alpha"]).max() <= 1e-5
+
+
 def test_bad_shapes_raise():
     scene = tensors(random_scene(5, 0))
     scene[4] = scene[4][:, :2]

@@ -127,7 +127,7 @@ def _output_dir(path: str) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..raster import RasterSettings, render_scene
+    from ..raster import RasterSettings, render_scene, scene_covariances
     from ..util.imageio import write_image
 
     # Options first, so that a typo fails before a large scene is read.
@@ -141,11 +141,12 @@ def run(args: argparse.Namespace) -> int:
     ext = args.format
 
     started = time.perf_counter()
+    covariances = scene_covariances(scene, device)
     total_pairs, empty = 0, 0
     for camera, stem in zip(cameras, output_stems(cameras)):
         args.threads.adapt()
         view_start = time.perf_counter()
-        out = render_scene(scene, camera, settings, device=device)
+        out = render_scene(scene, camera, settings, device=device, covariances=covariances)
         seconds = time.perf_counter() - view_start
         alpha = out.alpha.cpu().numpy()
         write_image(out_dir / f"{stem}.{ext}", out.rgb.cpu().numpy())

@@ -94,20 +94,24 @@ class ViewEvaluation:
     style_size: tuple[int, int]  # (width, height) of the painting the colours were compared with
 
 
-def _render(scene: GaussianScene, camera: Camera, settings, device, label: str):
+def _render(scene: GaussianScene, camera: Camera, settings, device, label: str, covariances):
     from ..raster import RasterSettings, render_scene
 
-    out = render_scene(scene, camera, settings or RasterSettings(), device=device)
+    out = render_scene(scene, camera, settings or RasterSettings(), device=device, covariances=covariances)
     if not bool(out.rgb.isfinite().all()):
         raise NumericalError(f"{label}: the render of camera {camera.name or '?'} has non-finite values")
     return out
 
 
 def render_views(
-    scene: GaussianScene, cameras: Sequence[Camera], settings=None, device="cpu", label="scene"
+    scene: GaussianScene, cameras: Sequence[Camera], settings=None, device="cpu", label="scene", covariances=None
 ) -> Renders:
-    """``scene`` from each of ``cameras``; NumericalError when a render has a non-finite value."""
-    outs = [_render(scene, camera, settings, device, label) for camera in cameras]
+    """``scene`` from each of ``cameras``; NumericalError when a render has a non-finite value. ``covariances``:
+    the scene's (``raster.scene_covariances``), if made already."""
+    from ..raster import scene_covariances
+
+    covariances = scene_covariances(scene, device) if covariances is None else covariances
+    outs = [_render(scene, camera, settings, device, label, covariances) for camera in cameras]
     return Renders(
         [o.rgb.float().permute(2, 0, 1).cpu() for o in outs],
         [o.alpha.float().cpu() for o in outs],
@@ -121,11 +125,15 @@ def _twice(camera: Camera) -> Camera:
 
 def base_views(base: GaussianScene, cameras: Sequence[Camera], settings=None, device="cpu") -> BaseViews:
     """Render the base scene once for any number of :func:`evaluate_views` calls on the same cameras."""
+    from ..raster import scene_covariances
+
     cameras = list(cameras)
-    large = [_render(base, _twice(c), settings, device, "base scene") for c in cameras]
+    covariances = scene_covariances(base, device)
+    large = [_render(base, _twice(c), settings, device, "base scene", covariances) for c in cameras]
     alpha_2x = [r.alpha.float().cpu() for r in large]
     rgb_2x = [r.rgb.float().permute(2, 0, 1).cpu() for r in large]
-    return BaseViews(cameras, render_views(base, cameras, settings, device, "base scene"), alpha_2x, rgb_2x)
+    renders = render_views(base, cameras, settings, device, "base scene", covariances)
+    return BaseViews(cameras, renders, alpha_2x, rgb_2x)
 
 
 def check_camera_sizes(cameras: Sequence[Camera], patch: int = 7) -> None:
@@ -203,11 +211,14 @@ def evaluate_views(
     check_camera_sizes(cameras, patch)
     if isinstance(stroke_size, bool) or not isinstance(stroke_size, int | float) or not 0.0 < stroke_size < math.inf:
         raise ConfigError(f"stroke size must be a positive number, got {stroke_size!r}")
-    ours = render_views(stylized, cameras, settings, device, "stylized scene")
+    from ..raster import scene_covariances
+
+    covariances = scene_covariances(stylized, device)
+    ours = render_views(stylized, cameras, settings, device, "stylized scene", covariances)
     masks = base.renders.alpha
     painting_t = torch.from_numpy(painting).permute(2, 0, 1).contiguous()
     style = painting_at(painting_t, cameras[0].width, cameras[0].height)
-    large = [_render(stylized, _twice(c), settings, device, "stylized scene").rgb for c in cameras]
+    large = [_render(stylized, _twice(c), settings, device, "stylized scene", covariances).rgb for c in cameras]
     large = [image.float().permute(2, 0, 1).cpu() for image in large]
     per_view, downsampled = {}, {}
     for key, factor in SCALES:

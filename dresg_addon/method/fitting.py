@@ -128,8 +128,9 @@ def seen_gaussians(
                 each_view(done)
     else:
         fast = []
+        covariances = splat_covariances(quats, log_scales, torch.float64)
         for done, camera in enumerate(cameras, 1):
-            fast.append(ColorOnlyRenderer(means, quats, log_scales, logits, camera, settings))
+            fast.append(ColorOnlyRenderer(means, quats, log_scales, logits, camera, settings, covariances=covariances))
             if each_view is not None:
                 each_view(done)
         seen_mask = torch.stack([f.seen for f in fast]).any(0)

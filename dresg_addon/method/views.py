@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from ..raster import ColorOnlyRenderer, RasterSettings, geometry_tensors, render
+from ..raster.projection import splat_covariances
 from ..scene.camera import Camera
 from ..scene.gaussians import GaussianScene
 from ..util.errors import CameraError, CancelledError, ConfigError, NumericalError
@@ -276,6 +277,7 @@ def visibility_matrix(
     render (:class:`~dresg_addon.raster.ColorOnlyRenderer`), so that a fit of these views renders none again.
     """
     means, quats, log_scales, logits = (t.to(device) for t in geometry_tensors(scene))
+    covariances = splat_covariances(quats, log_scales, torch.float64)
     colors = torch.zeros_like(means)
     rows, cols, vals = [], [], []
     keep = renderers is not None
@@ -284,7 +286,7 @@ def visibility_matrix(
             raise CancelledError("view selection cancelled")
         with torch.no_grad():
             out = render(
-                means, quats, log_scales, logits, colors, camera, settings, "depth_consistent", keep_contributions=keep
+                means, quats, log_scales, logits, colors, camera, settings, "depth_consistent", keep, covariances
             )
         if keep:
             renderers.append(ColorOnlyRenderer(means, quats, log_scales, logits, camera, settings, output=out))

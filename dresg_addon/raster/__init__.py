@@ -13,7 +13,15 @@ Semantics (the definition, which :mod:`.reference` implements slowly in float64)
 - Front-to-back by depth; a sample with T (1 - alpha) < 1e-4 ends the pixel and is not added.
 """
 
-from .rasterizer import ColorOnlyRenderer, RasterSettings, RenderOutput, geometry_tensors, render, render_scene
+from .rasterizer import (
+    ColorOnlyRenderer,
+    RasterSettings,
+    RenderOutput,
+    geometry_tensors,
+    render,
+    render_scene,
+    scene_covariances,
+)
 from .sh import colors_from_sh
 
 __all__ = [
@@ -24,4 +32,5 @@ __all__ = [
     "geometry_tensors",
     "render",
     "render_scene",
+    "scene_covariances",
 ]

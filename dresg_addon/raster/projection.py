@@ -13,6 +13,7 @@ import torch
 
 LOW_PASS = 0.3  # added to the 2D covariance diagonal (graphdeco's anti-aliasing floor)
 FRUSTUM_GUARD = 1.3  # Jacobian x/z, y/z clamped to 1.3 tan(fov/2)
+_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))  # the entries of a symmetric 3 x 3 matrix kept
 
 
 @dataclass
@@ -177,6 +178,33 @@ class _EWA(torch.autograd.Function):
         return (*(torch.cat(g) for g in zip(*grads)), None)
 
 
+def _ewa_frozen(cam, covariances, camera):
+    """What :class:`_EWA` outputs, for geometry that needs no gradient: from camera-space centres [K, 3] and the
+    splats' world covariances [K, 6] (:func:`splat_covariances` in float64, made once for every view).
+
+    The same float64 EWA in a few operations a splat: the covariance in camera space is one [K, 6] x [6, 6] product,
+    and with the Jacobian's rows fx/z (e0 - u e2) and fy/z (e1 - v e2), cxx = (fx/z)^2 (S00 - 2u S02 + u^2 S22) and
+    likewise. The determinant's cancellation (cxx cyy - cxy^2 of a needle) costs eps x cxx cyy, far below the
+    low-pass's share of it, 0.3 (cxx + cyy), at any size a splat can have on screen."""
+    rot, _trans, fx, fy, cx, cy, lim_x, lim_y = camera
+    rows = torch.tensor(rot, dtype=torch.float64, device=cam.device)
+    forms = torch.stack([_quadratic_forms(rows[i], rows[j]) for i, j in _PAIRS], 1)  # [6, 6]
+    s00, s11, s22, s01, s02, s12 = (covariances @ forms).unbind(-1)
+    x, y, z = cam.unbind(-1)
+    inv_z = 1.0 / z
+    u_raw, v_raw = x * inv_z, y * inv_z
+    u, v = u_raw.clamp(-lim_x, lim_x), v_raw.clamp(-lim_y, lim_y)
+    jx, jy = fx * inv_z, fy * inv_z
+    sxx0 = jx * jx * (s00 - 2.0 * u * s02 + u * u * s22)
+    syy0 = jy * jy * (s11 - 2.0 * v * s12 + v * v * s22)
+    sxy = jx * jy * (s01 - v * s02 - u * s12 + u * v * s22)
+    det = (sxx0 * syy0 - sxy * sxy).clamp_min(0.0) + LOW_PASS * (sxx0 + syy0) + LOW_PASS * LOW_PASS
+    ok = torch.isfinite(det) & (det > 0)
+    det = torch.where(ok, det, 1.0)
+    cxx, cyy = sxx0 + LOW_PASS, syy0 + LOW_PASS
+    return fx * u_raw + cx, fy * v_raw + cy, cyy / det, -sxy / det, cxx / det, cxx, sxy, cyy, z, ok
+
+
 def _on_screen(means_cam, log_scales, fx, fy, cx, cy, width, height, lim_x, lim_y):
     """Conservative cull: False only for Gaussians whose alpha >= 1/255 ellipse surely misses the image.
 
@@ -204,11 +232,14 @@ def project_gaussians(
     height: int,
     near: float,
     valid: torch.Tensor | None = None,  # [N] bool, extra Gaussians to skip (e.g. non-finite opacity)
+    covariances: torch.Tensor | None = None,  # [N, 6] float64 splat_covariances, when the geometry has no gradient
 ) -> Projected:
     """EWA splatting of 3D Gaussians (Zwicker et al.; graphdeco's computeCov2D).
 
     Culls non-finite Gaussians, those with z <= near and those surely off screen *before* any
-    differentiable arithmetic on them, so that their gradients are exactly zero rather than NaN.
+    differentiable arithmetic on them, so that their gradients are exactly zero rather than NaN. Geometry that needs
+    no gradient, given its ``covariances`` (made once for a scene rendered from many views), takes a shorter path
+    (:func:`_ewa_frozen`, the same to ~1e-12).
     """
     f64 = torch.float64
     w2c = world_to_camera.to(means.device, f64)
@@ -224,12 +255,24 @@ def project_gaussians(
         seen = _on_screen(cam, log_scales.detach().to(f64), fx, fy, cx, cy, width, height, lim_x, lim_y)
         index = torch.nonzero(front & seen).squeeze(-1)
     camera = (rot.tolist(), trans.tolist(), fx, fy, cx, cy, lim_x, lim_y)
-    columns = _EWA.apply(
-        torch.index_select(means, 0, index).to(f64),
-        torch.index_select(quats, 0, index).to(f64),
-        torch.index_select(log_scales, 0, index).to(f64),
-        camera,
+    frozen = covariances is not None and not (
+        torch.is_grad_enabled() and any(t.requires_grad for t in (means, quats, log_scales))
     )
+    if frozen:
+        with torch.no_grad():
+            covariances = covariances.to(means.device, f64)
+            pieces = [
+                _ewa_frozen(cam.index_select(0, part), covariances.index_select(0, part), camera)
+                for part in [index[:0], *index.split(CHUNK)]
+            ]
+            columns = [torch.cat(column) for column in zip(*pieces)]
+    else:
+        columns = _EWA.apply(
+            torch.index_select(means, 0, index).to(f64),
+            torch.index_select(quats, 0, index).to(f64),
+            torch.index_select(log_scales, 0, index).to(f64),
+            camera,
+        )
     ok = columns[-1]
     keep = torch.nonzero(ok).squeeze(-1)
     if keep.numel() < ok.numel():
@@ -237,14 +280,14 @@ def project_gaussians(
     return Projected(index, *columns[:-1])
 
 
-_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))  # the entries of a symmetric 3 x 3 matrix kept
-
-
-def splat_covariances(quats: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:  # -> [N, 6]
-    """The 3D covariance (R S)(R S)^T of each Gaussian as its six entries xx, yy, zz, xy, xz, yz, float32: what
-    :func:`projected_mean_variance` reuses for every view."""
-    q = (quats.float() / quats.float().norm(dim=-1, keepdim=True).clamp_min(1e-30)).unbind(-1)
-    m = torch.stack(_rotation_columns(q), -1).reshape(-1, 3, 3) * torch.exp(log_scales.float())[:, None, :]
+def splat_covariances(
+    quats: torch.Tensor, log_scales: torch.Tensor, dtype: torch.dtype = torch.float32
+) -> torch.Tensor:  # -> [N, 6]
+    """The 3D covariance (R S)(R S)^T of each Gaussian as its six entries xx, yy, zz, xy, xz, yz: what
+    :func:`projected_mean_variance` (float32) and :func:`project_gaussians` (float64) reuse for every view."""
+    tiny = 1e-300 if dtype == torch.float64 else 1e-30
+    q = (quats.to(dtype) / quats.to(dtype).norm(dim=-1, keepdim=True).clamp_min(tiny)).unbind(-1)
+    m = torch.stack(_rotation_columns(q), -1).reshape(-1, 3, 3) * torch.exp(log_scales.to(dtype))[:, None, :]
     rows = m.unbind(1)  # each [N, 3]: row i of R S
     return torch.stack([(rows[i] * rows[j]).sum(-1) for i, j in _PAIRS], -1)
 

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from ..scene.camera import Camera
-from .projection import project_gaussians
+from .projection import project_gaussians, splat_covariances
 from .workers import cpu_workers, in_workers
 
 # Memory a render holds, measured on CPU renders: outputs and per-pixel scans, and each kept candidate
@@ -406,6 +406,7 @@ def render(
     settings: RasterSettings = RasterSettings(),
     visibility: str | None = None,  # None | "all" | "depth_consistent"
     keep_contributions: bool = False,
+    covariances: torch.Tensor | None = None,  # [N, 6] float64 splat_covariances: for many views of frozen geometry
 ) -> RenderOutput:
     """Render one view. Differentiable in means, quats, log_scales, opacity_logits and colors.
 
@@ -429,8 +430,9 @@ def render(
     w2c = torch.as_tensor(camera.world_to_camera, dtype=torch.float64, device=device)
     valid = torch.isfinite(opacity_logits.detach()) & torch.isfinite(colors.detach()).all(-1)
     proj = project_gaussians(
-        means, quats, log_scales, w2c, camera.fx, camera.fy, camera.cx, camera.cy, width, height, settings.near, valid
-    )
+        means, quats, log_scales, w2c, camera.fx, camera.fy, camera.cx, camera.cy, width, height, settings.near, valid,
+        covariances,
+    )  # fmt: skip
     opac = torch.sigmoid(_take(opacity_logits, proj.index).to(torch.float64))
     with torch.no_grad():
         r2 = 2.0 * torch.log(255.0 * opac)  # alpha >= 1/255  <=>  power <= 2 ln(255 o)
@@ -624,13 +626,16 @@ class ColorOnlyRenderer:
         camera: Camera,
         settings: RasterSettings = RasterSettings(),
         output: RenderOutput | None = None,  # this camera's render with its contributions kept, if one was made
+        covariances: torch.Tensor | None = None,  # as render() takes them
     ):
         n = means.shape[0]
         out = output
         if out is None or out.contributions is None:
             with torch.no_grad():
                 dummy = torch.zeros(n, 3, dtype=torch.float32, device=means.device)
-                out = render(means, quats, log_scales, opacity_logits, dummy, camera, settings, keep_contributions=True)
+                out = render(
+                    means, quats, log_scales, opacity_logits, dummy, camera, settings, None, True, covariances
+                )
         self.camera = camera
         self.shape = (camera.height, camera.width)
         empty = torch.zeros(0, dtype=torch.long, device=means.device)
@@ -707,7 +712,12 @@ def geometry_tensors(scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, t
 
 
 def render_scene(
-    scene, camera: Camera, settings: RasterSettings = RasterSettings(), visibility=None, device="cpu"
+    scene,
+    camera: Camera,
+    settings: RasterSettings = RasterSettings(),
+    visibility=None,
+    device="cpu",
+    covariances: torch.Tensor | None = None,  # scene_covariances(scene), when rendering many views of it
 ) -> RenderOutput:
     """Render a :class:`~dresg_addon.scene.gaussians.GaussianScene` (numpy) without gradients, in float32 output."""
     from .sh import colors_from_sh
@@ -721,5 +731,13 @@ def render_scene(
         sh_rest = None if scene.sh_rest is None else t(scene.sh_rest)
         colors = colors_from_sh(t(scene.sh_dc), sh_rest, means, center)
         return render(
-            means, t(scene.quats), t(scene.log_scales), t(scene.opacity_logits), colors, camera, settings, visibility
-        )
+            means, t(scene.quats), t(scene.log_scales), t(scene.opacity_logits), colors, camera, settings, visibility,
+            covariances=covariances,
+        )  # fmt: skip
+
+
+def scene_covariances(scene, device="cpu") -> torch.Tensor:  # -> [N, 6] float64
+    """The splats' world covariances, made once for a scene rendered from many views (:func:`render_scene`)."""
+    return splat_covariances(torch.from_numpy(scene.quats), torch.from_numpy(scene.log_scales), torch.float64).to(
+        device
+    )
