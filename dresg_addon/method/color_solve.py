@@ -157,10 +157,14 @@ class _Problem:
         self.inverse_diagonal = 1.0 / (diagonal + self.ridge + self.anchor_weight)
 
     def value(self, x: torch.Tensor) -> float:
-        total = self.anchor_weight * float((x - self.anchor).double().square().sum()) if self.anchor_weight else 0.0
+        # Squares in float32, their sums in float64: no float64 copies of [N, 3] or [P, 3] vectors.
+        total = (
+            self.anchor_weight * float((x - self.anchor).square().sum(dtype=torch.float64))
+            if self.anchor_weight
+            else 0.0
+        )
         for m, r in zip(self.views.maps, self.rhs):
-            res = (m.matvec(x) - r).double()
-            total += float(res.square().sum())
+            total += float((m.matvec(x) - r).square().sum(dtype=torch.float64))
         return total
 
     def gradient(self, x: torch.Tensor) -> torch.Tensor:  # half the gradient of f
@@ -176,8 +180,8 @@ class _Problem:
         return out
 
 
-def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # per column, in float64: [N, K] -> [K]
-    return (a.double() * b.double()).sum(0)
+def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # per column, summed in float64: [N, K] -> [K]
+    return (a * b).sum(0, dtype=torch.float64)
 
 
 def _cg_step(

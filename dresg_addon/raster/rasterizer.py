@@ -633,9 +633,7 @@ class ColorOnlyRenderer:
         if out is None or out.contributions is None:
             with torch.no_grad():
                 dummy = torch.zeros(n, 3, dtype=torch.float32, device=means.device)
-                out = render(
-                    means, quats, log_scales, opacity_logits, dummy, camera, settings, None, True, covariances
-                )
+                out = render(means, quats, log_scales, opacity_logits, dummy, camera, settings, None, True, covariances)
         self.camera = camera
         self.shape = (camera.height, camera.width)
         empty = torch.zeros(0, dtype=torch.long, device=means.device)
