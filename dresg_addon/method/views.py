@@ -93,8 +93,13 @@ def select_views(visibility, settings: ViewSelectionSettings | None = None) -> V
     the coverage sum_i c_i / |T| to ``coverage_stop``. Raises CameraError when no camera sees any
     Gaussian with w >= w_min.
     """
-    settings = settings or ViewSelectionSettings()
-    rows, num_gaussians = _visibility_rows(visibility)
+    return _select_from_rows(*_visibility_rows(visibility), settings or ViewSelectionSettings())
+
+
+def _select_from_rows(
+    rows: list[tuple[np.ndarray, np.ndarray]], num_gaussians: int, settings: ViewSelectionSettings
+) -> ViewSelection:
+    """:func:`select_views` on each view's (indices, positive values)."""
     ratios, num_targets, blind = _coverage_ratios(rows, num_gaussians, settings)
 
     covered = np.zeros(num_gaussians, dtype=np.float32)  # c_i(A)
@@ -212,7 +217,7 @@ def _visibility_rows(visibility) -> tuple[list[tuple[np.ndarray, np.ndarray]], i
         else:
             crow = visibility.crow_indices().cpu().numpy()
             col = visibility.col_indices().cpu().numpy()
-            val = visibility.values().detach().cpu().numpy().astype(np.float32)
+            val = visibility.values().detach().cpu().numpy().astype(np.float32, copy=False)
         segments = [(col[crow[v] : crow[v + 1]], val[crow[v] : crow[v + 1]]) for v in range(num_views)]
     else:
         visibility = visibility.detach() if isinstance(visibility, torch.Tensor) else np.asarray(visibility)
@@ -235,7 +240,7 @@ def _visibility_rows(visibility) -> tuple[list[tuple[np.ndarray, np.ndarray]], i
         if (val < 0).any():
             raise ValueError("the visibility matrix has negative values")
         positive = val > 0
-        rows.append((idx[positive], val[positive]))
+        rows.append((idx, val) if positive.all() else (idx[positive], val[positive]))
     return rows, num_gaussians
 
 
@@ -269,8 +274,8 @@ def visibility_matrix(
     device: str | torch.device = "cpu",
     renderers: list | None = None,
 ) -> torch.Tensor:
-    """w [V, N] (sparse COO, on the CPU): each Gaussian's depth-consistent visible weight sum_p T alpha in each
-    view (Sec. 4.3), rendered on ``device``.
+    """w [V, N] (sparse CSR, int32 indices, on the CPU): each Gaussian's depth-consistent visible weight
+    sum_p T alpha in each view (Sec. 4.3), rendered on ``device``.
 
     ``progress(done, total)`` is called once per camera, after its render (done = 1 .. total); setting ``cancel``
     stops with CancelledError. Given a list, ``renderers`` gets each camera's colour-only renderer from the same
@@ -279,7 +284,7 @@ def visibility_matrix(
     means, quats, log_scales, logits = (t.to(device) for t in geometry_tensors(scene))
     covariances = splat_covariances(quats, log_scales, torch.float64)
     colors = torch.zeros_like(means)
-    rows, cols, vals = [], [], []
+    cols, vals = [], []
     keep = renderers is not None
     for v, camera in enumerate(cameras):
         if cancel is not None and cancel.is_set():
@@ -292,14 +297,15 @@ def visibility_matrix(
             renderers.append(ColorOnlyRenderer(means, quats, log_scales, logits, camera, settings, output=out))
         visibility = out.visibility.cpu()
         nz = torch.nonzero(visibility > 0).squeeze(-1)
-        rows.append(torch.full_like(nz, v))
-        cols.append(nz)
-        vals.append(visibility[nz])
+        cols.append(nz.to(torch.int32))  # a 2M-splat scene's 16 views: 24M entries, 0.2 GB as int32 and float32
+        vals.append(visibility[nz].float())
         if progress is not None:
             progress(v + 1, len(cameras))
-    index = torch.stack([torch.cat(rows), torch.cat(cols)])
-    size = (len(cameras), len(scene))
-    return torch.sparse_coo_tensor(index, torch.cat(vals), size, check_invariants=False).coalesce()
+    crow = torch.zeros(len(cameras) + 1, dtype=torch.int32)
+    crow[1:] = torch.cumsum(torch.tensor([c.numel() for c in cols], dtype=torch.int64), 0).to(torch.int32)
+    col, val = torch.cat(cols), torch.cat(vals)
+    cols.clear(), vals.clear()
+    return torch.sparse_csr_tensor(crow, col, val, (len(cameras), len(scene)), check_invariants=False)
 
 
 def select_active_views(
@@ -325,30 +331,27 @@ def select_active_views(
     w = visibility_matrix(
         scene, cameras, config.raster(near), progress=progress, cancel=cancel, device=device, renderers=renderers
     )
+    # Row by row from here: a [V, N] array of a 2M-splat scene, or its coordinates, would be GBs.
+    rows, _ = _visibility_rows(w)
     if mask is not None:  # splats outside the selection are seen by no view, as far as coverage goes
-        keep = torch.from_numpy(np.asarray(mask, bool))[w.indices()[1]]
-        w = torch.sparse_coo_tensor(  # a coalesced tensor's entries, some left out: still coalesced
-            w.indices()[:, keep], w.values()[keep], w.shape, check_invariants=False, is_coalesced=True
-        )
+        selected = np.asarray(mask, bool)
+        rows = [(idx[selected[idx]], val[selected[idx]]) for idx, val in rows]
     settings = ViewSelectionSettings(max_views=config.max_views or None)
-    chosen = select_views(w, settings)
-    dense_max = w.to_dense().amax(0).numpy().astype(np.float64) if len(scene) * len(cameras) <= 5e7 else None
-    if dense_max is None:
-        dense_max = (
-            torch.zeros(len(scene), dtype=torch.float64)
-            .scatter_reduce_(0, w.indices()[1], w.values().double(), "amax")
-            .numpy()
-        )
-    targets = dense_max >= settings.min_support
-    support = target_support(dense_max, settings.min_support, settings.target_fraction)
+    chosen = _select_from_rows(rows, len(scene), settings)
+    most = np.zeros(len(scene), dtype=np.float64)
+    for idx, val in rows:
+        most[idx] = np.maximum(most[idx], val)
+    targets = most >= settings.min_support
+    support = target_support(most, settings.min_support, settings.target_fraction)
     per_view = []
-    for v in range(len(cameras)):
-        row = w[v].to_dense().numpy().astype(np.float64)
-        per_view.append(float(capped_coverage(row[targets], support[targets]).sum() / max(targets.sum(), 1)))
-    picked = torch.isin(w.indices()[0], torch.tensor(list(chosen.views), dtype=torch.long))
-    seen_weight = torch.zeros(len(scene), dtype=torch.float64).scatter_reduce_(
-        0, w.indices()[1][picked], w.values()[picked].double(), "amax"
-    )
+    for idx, val in rows:
+        aimed = targets[idx]
+        coverage = capped_coverage(val[aimed].astype(np.float64), support[idx[aimed]])
+        per_view.append(float(coverage.sum() / max(targets.sum(), 1)))
+    seen_weight = np.zeros(len(scene), dtype=np.float64)
+    for v in chosen.views:
+        idx, val = rows[v]
+        seen_weight[idx] = np.maximum(seen_weight[idx], val)
     count = int(np.count_nonzero(mask)) if mask is not None else len(scene)
     seen = float((seen_weight >= settings.min_support).sum()) / max(count, 1)
     return ActiveViews(
