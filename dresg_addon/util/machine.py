@@ -109,3 +109,24 @@ def process_alive(pid: int) -> bool:
     except OSError:
         return True
     return True
+
+
+
+def release_free_memory() -> bool:
+    """Hand the memory the allocator holds free back to the system (glibc's ``malloc_trim``); False where there is
+    no glibc. It changes no setting: the next allocations take pages anew.
+
+    glibc keeps freed blocks of up to 32 MiB in its heaps, scattered between live ones, and the rasterizer's worker
+    threads each have their own heap: a 2.18M-splat run's resident memory grew from 3.3 to 4.3 GB over its stages
+    with nothing new held. Called between the steps of a run, where the large temporaries of the one before are
+    freed."""
+    if not sys.platform.startswith("linux"):
+        return False
+    import ctypes
+
+    try:
+        trim = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        return False
+    trim(0)
+    return True
