@@ -111,7 +111,6 @@ def process_alive(pid: int) -> bool:
     return True
 
 
-
 def release_free_memory() -> bool:
     """Hand the memory the allocator holds free back to the system (glibc's ``malloc_trim``); False where there is
     no glibc. It changes no setting: the next allocations take pages anew.
