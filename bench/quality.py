@@ -118,6 +118,7 @@ COLUMNS = (
     ("marks_fine", "marks fine", 2),
     ("marks_mid", "mid", 2),
     ("marks_coarse", "coarse", 2),
+    ("mark_length", "mark length", 2),
     ("short_rmse", "short RMSE ↓", 4),
     ("long_rmse", "long RMSE ↓", 4),
     ("min_closed", "closed ↑", 2),

@@ -6,7 +6,10 @@ a pyramid level and a patch size is:
 
 1. matching: each estimate patch on a grid (gap smaller than the patch, random grid offset per pass) to
    its nearest style patch, L2 distance in a PCA subspace of the style's patches, searched exhaustively
-   by chunked matrix multiplies (:func:`nearest_patches`);
+   by chunked matrix multiplies (:func:`nearest_patches`); with ``coherence`` (kappa) > 0, then coherent: a patch
+   continues a grid neighbour's copy of the painting where that is within (1 + kappa) of its own match
+   (:func:`coherent_corners`; Ashikhmin 2001, Hertzmann et al. 2001), so the painting's strokes run on across
+   patches instead of being cut into tiles one grid step long;
 2. robust aggregation: X~ = argmin_X sum_ij ||R_ij X - z_ij||^r by IRLS, weights ||R_ij X - z_ij||^(r-2)
    (:func:`robust_aggregate`);
 3. content fusion, below the stroke scale only: X = X~ + W / (1 + W) (blur(C') - blur(X~)), C' the content
@@ -143,6 +146,11 @@ class SynthSettings:
     # palette, not its upsampled blur.
     final_match: bool = False
     noise: float = 50.0 / 255.0  # matching noise of a stage's first pass, x sqrt(1 - its ladder entry)
+    # Coherent matching (kappa of Hertzmann et al. 2001): a patch takes a grid neighbour's translation into the
+    # painting when that copy is within (1 + kappa) of its own nearest patch's squared distance, so copied regions
+    # run on past one patch and the painting's long strokes with them (:func:`coherent_corners`). 0: each patch on
+    # its own.
+    coherence: float = 0.0
     histogram_matching: bool = True
     search_chunk: int = 2048  # estimate patches per matrix multiply of the nearest-patch search
 
@@ -166,7 +174,7 @@ class SynthSettings:
             raise ConfigError(f"synth backend: edge_level must be >= 0, got {self.edge_level}")
         if not (math.isfinite(self.light_weight) and 0.0 <= self.light_weight <= 1.0):
             raise ConfigError(f"synth backend: light_weight must be in [0, 1], got {self.light_weight}")
-        for name in ("content_weight", "edge_floor", "edge_gain", "noise", "content_sigma"):
+        for name in ("content_weight", "edge_floor", "edge_gain", "noise", "content_sigma", "coherence"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ConfigError(f"synth backend: {name} must be finite and >= 0, got {getattr(self, name)}")
 
@@ -289,6 +297,70 @@ def nearest_patches(queries: torch.Tensor, library: torch.Tensor, chunk: int = 2
     return out
 
 
+COHERENCE_SWEEPS = 2  # rounds of propagation down, right, up and left over the patch grid
+
+
+def coherent_corners(
+    queries: torch.Tensor,  # [P, C s^2] the kept patches of the estimate, in pixels
+    corners: torch.Tensor,  # [P] each one's nearest patch: flat top-left index into ``source``
+    source: torch.Tensor,  # [C, 2 h w] the style at the level, its mirror image below it (StyleLibrary.source)
+    width: int,  # w, of the style at the level
+    size: int,
+    ys: torch.Tensor,  # [a] the grid's corners
+    xs: torch.Tensor,  # [b]
+    kept: torch.Tensor,  # [a b] bool: the grid's patches that are matched (the rows of ``queries``)
+    kappa: float,
+    sweeps: int = COHERENCE_SWEEPS,
+) -> torch.Tensor:  # [P]
+    """Each patch's corner after coherent matching (Ashikhmin 2001; Hertzmann et al. 2001's kappa; PatchMatch's
+    propagation): sweeping the grid down, right, up and left, a patch takes its previous neighbour's translation into
+    the painting (the neighbour's corner moved by the grid step) when that copy's squared distance is within
+    (1 + kappa) of its own nearest patch's and, once it has taken one, closer than the one it has. The copy may lie
+    anywhere in the painting, not only among the library's sampled patches; it stays inside the painting, or its
+    mirror image, where the neighbour's is."""
+    a, b = ys.numel(), xs.numel()
+    level_height = source.shape[1] // width // 2
+    offsets = (torch.arange(size)[:, None] * width + torch.arange(size)[None, :]).reshape(-1)
+
+    def distance(patches: torch.Tensor, corner: torch.Tensor) -> torch.Tensor:
+        copies = source[:, corner[:, None] + offsets[None, :]].permute(1, 0, 2).reshape(corner.numel(), -1)
+        return (patches - copies).square().sum(1)
+
+    def grid(values: torch.Tensor, fill) -> torch.Tensor:  # the kept patches' values on the whole [a, b] grid
+        out = torch.full((a * b, *values.shape[1:]), fill, dtype=values.dtype)
+        out[kept] = values
+        return out.reshape(a, b, *values.shape[1:])
+
+    patches = grid(queries, 0.0)
+    rows, cols = grid(corners // width, 0), grid(corners % width, 0)
+    limit = grid((1.0 + kappa) * distance(queries, corners), 0.0)
+    best = limit / (1.0 + kappa)
+    taken = torch.zeros(a, b, dtype=torch.bool)
+    on = kept.reshape(a, b)
+    steps = {0: ys, 1: xs}
+    for _ in range(sweeps):
+        for axis, reverse in ((0, False), (1, False), (0, True), (1, True)):
+            length = (a, b)[axis]
+            order = range(length - 2, -1, -1) if reverse else range(1, length)
+            for i in order:
+                j = i + 1 if reverse else i - 1  # the neighbour already swept
+                at, nb = ((i, slice(None)), (j, slice(None))) if axis == 0 else ((slice(None), i), (slice(None), j))
+                shift = int(steps[axis][i] - steps[axis][j])
+                row, col = rows[nb] + (shift if axis == 0 else 0), cols[nb] + (shift if axis == 1 else 0)
+                low = rows[nb] // level_height * level_height  # the half (painting or mirror) the neighbour is in
+                ok = on[at] & on[nb] & (row >= low) & (row <= low + level_height - size) & (col >= 0)
+                ok &= (col <= width - size) & ((row != rows[at]) | (col != cols[at]))
+                where = torch.nonzero(ok)[:, 0]
+                if where.numel() == 0:
+                    continue
+                d = distance(patches[at][where], row[where] * width + col[where])
+                accept = (d <= limit[at][where]) & (~taken[at][where] | (d < best[at][where]))
+                where, d = where[accept], d[accept]
+                rows[at][where], cols[at][where], best[at][where] = row[where], col[where], d
+                taken[at][where] = True
+    return (rows * width + cols).reshape(-1)[kept]
+
+
 @dataclass
 class StyleLibrary:
     """Style patches of one size at one pyramid level, kept as positions (not pixels) with their PCA projection.
@@ -310,7 +382,10 @@ class StyleLibrary:
         return self.corners.numel()
 
     def patches(self, rows: torch.Tensor | None = None) -> torch.Tensor:  # [R] -> [R, 3 s^2] (all rows: None)
-        corners = self.corners if rows is None else self.corners[rows]
+        return self.at(self.corners if rows is None else self.corners[rows])
+
+    def at(self, corners: torch.Tensor) -> torch.Tensor:  # [R] flat top-left indices into source -> [R, 3 s^2]
+        """The patches at any corners of the source, sampled by the library or not."""
         offsets = (torch.arange(self.size)[:, None] * self.width + torch.arange(self.size)[None, :]).reshape(-1)
         index = corners[:, None] + offsets[None, :]
         return self.source[:, index].permute(1, 0, 2).reshape(index.shape[0], -1)
@@ -538,7 +613,7 @@ class PaintingField:
     """Where in the painting each pixel of a proposal comes from: per pixel at the proposal size, a pixel of
     ``source`` (the painting as the backend was given it, its mirror image below it: [3, 2 Hs, Ws]); ``valid`` is
     False where no matched patch covers the pixel. Each pixel takes the patch whose centre is nearest, so the field is
-    piecewise a translation, one per patch."""
+    piecewise a translation: one per patch, or per run of patches that coherent matching copied together."""
 
     rows: torch.Tensor  # [H, W] long, in [0, 2 Hs)
     cols: torch.Tensor  # [H, W] long, in [0, Ws)
@@ -818,10 +893,12 @@ class SynthBackend(ProposalBackend):
         if index.shape[0] == 0:
             return estimate, 0.0
         # E-step: nearest style patches; M-step: robust aggregation, content fusion, colour transfer.
-        queries = library.project(extract_patches(probe, index))
-        rows = nearest_patches(queries, library.projected, s.search_chunk)
-        self._matched = _Matches(level, size, ys, xs, kept, library.corners[rows], library.width)
-        matches = library.patches(rows)
+        probed = extract_patches(probe, index)
+        corners = library.corners[nearest_patches(library.project(probed), library.projected, s.search_chunk)]
+        if s.coherence > 0.0:
+            corners = coherent_corners(probed, corners, library.source, library.width, size, ys, xs, kept, s.coherence)
+        self._matched = _Matches(level, size, ys, xs, kept, corners, library.width)
+        matches = library.at(corners)
         energy = (extract_patches(filled, index) - matches).norm(dim=1).pow(s.robust_power).mean() / matches.shape[1]
         synthesis = robust_aggregate(estimate, matches, index, s.robust_power, s.irls_iterations)
         content_low, weight = self._content(content, style, coverage, keys, level)
