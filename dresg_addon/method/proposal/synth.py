@@ -297,7 +297,7 @@ def nearest_patches(queries: torch.Tensor, library: torch.Tensor, chunk: int = 2
     return out
 
 
-COHERENCE_SWEEPS = 2  # rounds of propagation down, right, up and left over the patch grid
+COHERENCE_SWEEPS = 2  # rounds of a forward and a backward scan over the patch grid
 
 
 def coherent_corners(
@@ -313,11 +313,12 @@ def coherent_corners(
     sweeps: int = COHERENCE_SWEEPS,
 ) -> torch.Tensor:  # [P]
     """Each patch's corner after coherent matching (Ashikhmin 2001; Hertzmann et al. 2001's kappa; PatchMatch's
-    propagation): sweeping the grid down, right, up and left, a patch takes its previous neighbour's translation into
-    the painting (the neighbour's corner moved by the grid step) when that copy's squared distance is within
-    (1 + kappa) of its own nearest patch's and, once it has taken one, closer than the one it has. The copy may lie
-    anywhere in the painting, not only among the library's sampled patches; it stays inside the painting, or its
-    mirror image, where the neighbour's is."""
+    propagation). Scanning the grid forward (candidates from the patches above and to the left) and backward (below
+    and to the right), a patch takes the closer of its two neighbours' translations into the painting (the neighbour's
+    corner moved by the grid step) when that copy's squared distance is within (1 + kappa) of its own nearest patch's
+    and, once it has taken one, closer than the one it has. The scan runs along anti-diagonals, whose patches do not
+    depend on each other. The copy may lie anywhere in the painting, not only among the library's sampled patches; it
+    stays inside the painting, or its mirror image, where the neighbour's is."""
     a, b = ys.numel(), xs.numel()
     level_height = source.shape[1] // width // 2
     offsets = (torch.arange(size)[:, None] * width + torch.arange(size)[None, :]).reshape(-1)
@@ -326,39 +327,47 @@ def coherent_corners(
         copies = source[:, corner[:, None] + offsets[None, :]].permute(1, 0, 2).reshape(corner.numel(), -1)
         return (patches - copies).square().sum(1)
 
-    def grid(values: torch.Tensor, fill) -> torch.Tensor:  # the kept patches' values on the whole [a, b] grid
+    def grid(values: torch.Tensor, fill) -> torch.Tensor:  # the kept patches' values on the whole grid, flat
         out = torch.full((a * b, *values.shape[1:]), fill, dtype=values.dtype)
         out[kept] = values
-        return out.reshape(a, b, *values.shape[1:])
+        return out
 
     patches = grid(queries, 0.0)
     rows, cols = grid(corners // width, 0), grid(corners % width, 0)
-    limit = grid((1.0 + kappa) * distance(queries, corners), 0.0)
-    best = limit / (1.0 + kappa)
-    taken = torch.zeros(a, b, dtype=torch.bool)
-    on = kept.reshape(a, b)
-    steps = {0: ys, 1: xs}
+    best = grid(distance(queries, corners), 0.0)
+    limit = (1.0 + kappa) * best
+    taken = torch.zeros(a * b, dtype=torch.bool)
     for _ in range(sweeps):
-        for axis, reverse in ((0, False), (1, False), (0, True), (1, True)):
-            length = (a, b)[axis]
-            order = range(length - 2, -1, -1) if reverse else range(1, length)
-            for i in order:
-                j = i + 1 if reverse else i - 1  # the neighbour already swept
-                at, nb = ((i, slice(None)), (j, slice(None))) if axis == 0 else ((slice(None), i), (slice(None), j))
-                shift = int(steps[axis][i] - steps[axis][j])
-                row, col = rows[nb] + (shift if axis == 0 else 0), cols[nb] + (shift if axis == 1 else 0)
-                low = rows[nb] // level_height * level_height  # the half (painting or mirror) the neighbour is in
-                ok = on[at] & on[nb] & (row >= low) & (row <= low + level_height - size) & (col >= 0)
-                ok &= (col <= width - size) & ((row != rows[at]) | (col != cols[at]))
-                where = torch.nonzero(ok)[:, 0]
-                if where.numel() == 0:
-                    continue
-                d = distance(patches[at][where], row[where] * width + col[where])
-                accept = (d <= limit[at][where]) & (~taken[at][where] | (d < best[at][where]))
-                where, d = where[accept], d[accept]
-                rows[at][where], cols[at][where], best[at][where] = row[where], col[where], d
-                taken[at][where] = True
-    return (rows * width + cols).reshape(-1)[kept]
+        for step in (1, -1):
+            order = range(a + b - 1) if step == 1 else range(a + b - 2, -1, -1)
+            for diagonal in order:
+                i = torch.arange(max(0, diagonal - b + 1), min(diagonal, a - 1) + 1)
+                j = diagonal - i
+                here = i * b + j
+                found = torch.full((here.numel(),), math.inf, dtype=best.dtype)
+                found_row, found_col = rows[here].clone(), cols[here].clone()
+                for ni, nj, shift_y, shift_x in (
+                    (i - step, j, ys[i] - ys[(i - step).clamp(0, a - 1)], 0),
+                    (i, j - step, 0, xs[j] - xs[(j - step).clamp(0, b - 1)]),
+                ):
+                    inside = (ni >= 0) & (ni < a) & (nj >= 0) & (nj < b)
+                    there = (ni * b + nj).clamp(0, a * b - 1)
+                    row, col = rows[there] + shift_y, cols[there] + shift_x
+                    low = rows[there] // level_height * level_height  # the half the neighbour's copy is in
+                    ok = inside & kept[here] & kept[there] & (row >= low) & (row <= low + level_height - size)
+                    ok &= (col >= 0) & (col <= width - size) & ((row != rows[here]) | (col != cols[here]))
+                    where = torch.nonzero(ok)[:, 0]
+                    if where.numel() == 0:
+                        continue
+                    d = distance(patches[here[where]], row[where] * width + col[where])
+                    closer = d < found[where]
+                    where, d = where[closer], d[closer]
+                    found[where], found_row[where], found_col[where] = d, row[where], col[where]
+                accept = (found <= limit[here]) & (~taken[here] | (found < best[here]))
+                chosen = here[accept]
+                rows[chosen], cols[chosen], best[chosen] = found_row[accept], found_col[accept], found[accept]
+                taken[chosen] = True
+    return (rows * width + cols)[kept]
 
 
 @dataclass
