@@ -297,7 +297,7 @@ def nearest_patches(queries: torch.Tensor, library: torch.Tensor, chunk: int = 2
     return out
 
 
-COHERENCE_SWEEPS = 2  # rounds of a forward and a backward scan over the patch grid
+COHERENCE_SWEEPS = 1  # rounds of a forward and a backward scan over the patch grid (a second changed little)
 
 
 def coherent_corners(
@@ -337,25 +337,32 @@ def coherent_corners(
     best = grid(distance(queries, corners), 0.0)
     limit = (1.0 + kappa) * best
     taken = torch.zeros(a * b, dtype=torch.bool)
+    scans = {}
+    for step in (1, -1):  # each anti-diagonal's patches, and their two neighbours already scanned (once per grid)
+        order = range(a + b - 1) if step == 1 else range(a + b - 2, -1, -1)
+        scans[step] = []
+        for diagonal in order:
+            i = torch.arange(max(0, diagonal - b + 1), min(diagonal, a - 1) + 1)
+            j = diagonal - i
+            here = i * b + j
+            sources = []
+            for ni, nj in ((i - step, j), (i, j - step)):
+                inside = (ni >= 0) & (ni < a) & (nj >= 0) & (nj < b)
+                there = ni.clamp(0, a - 1) * b + nj.clamp(0, b - 1)
+                inside &= kept[here] & kept[there]
+                shift = (ys[i] - ys[ni.clamp(0, a - 1)], xs[j] - xs[nj.clamp(0, b - 1)])
+                sources.append((inside, there, shift))
+            scans[step].append((here, sources))
     for _ in range(sweeps):
         for step in (1, -1):
-            order = range(a + b - 1) if step == 1 else range(a + b - 2, -1, -1)
-            for diagonal in order:
-                i = torch.arange(max(0, diagonal - b + 1), min(diagonal, a - 1) + 1)
-                j = diagonal - i
-                here = i * b + j
+            for here, sources in scans[step]:
                 found = torch.full((here.numel(),), math.inf, dtype=best.dtype)
                 found_row, found_col = rows[here].clone(), cols[here].clone()
-                for ni, nj, shift_y, shift_x in (
-                    (i - step, j, ys[i] - ys[(i - step).clamp(0, a - 1)], 0),
-                    (i, j - step, 0, xs[j] - xs[(j - step).clamp(0, b - 1)]),
-                ):
-                    inside = (ni >= 0) & (ni < a) & (nj >= 0) & (nj < b)
-                    there = (ni * b + nj).clamp(0, a * b - 1)
+                for inside, there, (shift_y, shift_x) in sources:
                     row, col = rows[there] + shift_y, cols[there] + shift_x
                     low = rows[there] // level_height * level_height  # the half the neighbour's copy is in
-                    ok = inside & kept[here] & kept[there] & (row >= low) & (row <= low + level_height - size)
-                    ok &= (col >= 0) & (col <= width - size) & ((row != rows[here]) | (col != cols[here]))
+                    ok = inside & (row >= low) & (row <= low + level_height - size) & (col >= 0)
+                    ok &= (col <= width - size) & ((row != rows[here]) | (col != cols[here]))
                     where = torch.nonzero(ok)[:, 0]
                     if where.numel() == 0:
                         continue
