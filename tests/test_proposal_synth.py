@@ -16,7 +16,6 @@ from dresg_addon.method.proposal.synth import (
     SynthSettings,
     aggregate_patches,
     build_library,
-    coherent_corners,
     content_weight_map,
     extract_patches,
     fill_uncovered,
@@ -840,76 +839,3 @@ def test_stroke_size_scales_the_marks(stroke_size, period):
     # over seeds 0-5; the peak bin alone moves a bin with the seed.
     k = round(width / period)
     assert float(power[k - 1 : k + 2].sum() / power[2:].sum()) > 0.5
-
-
-# ----------------------------------------------------------------------------------------------------
-# Coherent matching
-
-
-def long_strokes(h: int, w: int, seed: int = 0) -> torch.Tensor:  # [3, h, w]
-    """A painting of long straight bristled strokes, 40-100 px, 5 px wide, with dark gaps between them."""
-    g = torch.Generator().manual_seed(seed)
-    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
-    image = torch.full((3, h, w), 0.08)
-    c, s = math.cos(0.5), math.sin(0.5)
-    for _ in range(h * w // 250):
-        cy, cx, length, phase = (torch.rand(4, generator=g) * torch.tensor([h, w, 60.0, 6.0])).tolist()
-        along, across = (x - cx) * c + (y - cy) * s, (y - cy) * c - (x - cx) * s
-        inside = (along.abs() < 20 + length / 2) & (across.abs() < 2.5)
-        colour = 0.4 + 0.6 * torch.rand(3, 1, 1, generator=g)
-        image = torch.where(inside, colour * (0.7 + 0.3 * torch.sin(2.7 * across + phase)), image)
-    return image.clamp(0, 1)
-
-
-def run_length(rows: torch.Tensor, cols: torch.Tensor) -> float:  # mean length of the rows' runs of one translation
-    ty = rows - torch.arange(rows.shape[0])[:, None]
-    tx = cols - torch.arange(rows.shape[1])[None, :]
-    same = (ty[:, 1:] == ty[:, :-1]) & (tx[:, 1:] == tx[:, :-1])
-    return rows.numel() / (int((~same).sum()) + rows.shape[0])
-
-
-def test_coherent_matching_copies_the_painting_in_regions_longer_than_a_patch():
-    """Matched on its own, each 9 px patch takes its own place in the painting (a sample of its patches): the copied
-    pieces, and the strokes with them, are cut every grid step. Coherent, a patch continues its neighbour's copy when
-    that is nearly as close, and the strokes run on."""
-    h, w = 96, 128
-    style = long_strokes(144, 192)
-    y, x = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
-    content = torch.stack([0.3 + 0.4 * x, 0.3 + 0.3 * y, 0.5 - 0.2 * x])
-    runs, energies = {}, {}
-    for kappa in (0.0, 0.5):
-        backend = SynthBackend(seed=0, coherence=kappa)
-        estimate = content
-        for stage in stage_timesteps(6, 1):
-            estimate, energy = backend.propose(estimate, stage, style, content)
-        field = backend.last_field
-        assert backend._matched.size == 9 and backend._matched.level == 0
-        runs[kappa], energies[kappa] = run_length(field.rows, field.cols), energy[-1]
-    # Measured 5.4 px (about the grid gap, 5) against 17.5.
-    assert runs[0.0] < 6.0 and runs[0.5] > 1.5 * 9
-    assert energies[0.5] <= energies[0.0]  # the copies come from the whole painting, not only the library's sample
-
-
-def test_coherent_corners_propagates_a_translation_and_keeps_inside_the_painting_or_its_mirror():
-    g = torch.Generator().manual_seed(0)
-    h, w, size = 30, 40, 5
-    style = torch.rand(3, h, w, generator=g)
-    source = torch.cat([style.reshape(3, -1), style.flip(-1).reshape(3, -1)], 1)
-    ys, xs = patch_grid(16, 20, size, 3)
-    index = patch_index(ys, xs, size, 20)
-    estimate = style[:, 7:23, 11:31]  # the painting moved by (7, 11): each patch has an exact copy there
-    kept = torch.ones(index.shape[0], dtype=torch.bool)
-    kept[5] = False  # a patch with nothing covered: left out, and not a neighbour to take from
-    queries = extract_patches(estimate, index[kept])
-    true = ((ys[:, None] + 7) * w + xs[None, :] + 11).reshape(-1)[kept]
-    wrong = torch.randint(0, (h - size) * w, (int(kept.sum()),), generator=g)
-    wrong = wrong - wrong % w + (wrong % w).clamp_max(w - size)  # a valid corner anywhere
-    wrong[0] = true[0]  # one patch knows where it is
-    # kappa 0 takes only closer copies: the exact one spreads from the first patch to every kept patch.
-    assert torch.equal(coherent_corners(queries, wrong, source, w, size, ys, xs, kept, 0.0), true)
-    # A huge kappa takes nearly any neighbour's copy, but only one that lies whole in the painting or its mirror image.
-    for start in (wrong, wrong + h * w):
-        out = coherent_corners(queries, start, source, w, size, ys, xs, kept, 1e9)
-        rows, cols = out // w % h, out % w
-        assert bool(((rows <= h - size) & (cols <= w - size) & (out < 2 * h * w)).all())
-        assert int((out != start).sum()) > len(out) // 2

@@ -143,7 +143,6 @@ def _build_synth(config, plan, scene_brightness, _device):
         content_sigma=synth_stroke_sigma(stroke_size),
         light_weight=light,
         final_match=use_content_query and synth_light_weight(scene_weight, scene_light) > 0.0,
-        coherence=plan.coherence,
     )
 
 

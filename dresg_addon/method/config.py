@@ -62,9 +62,6 @@ class Plan:
     # Each splat carries where in the painting its colour comes from, and the views' targets take their marks from
     # it (method/marks.py); only with a backend that says where its proposals' pixels come from.
     carry_marks: bool = False
-    # The synthesis's patches continue a grid neighbour's copy of the painting within (1 + this) of their own best
-    # match (kappa, proposal/synth.coherent_corners): strokes run on past one patch; 0: each patch on its own.
-    coherence: float = 0.0
     # With geometry frozen, splats narrower than this many pixels in every active view share a colour per pixel-sized
     # cell during the fit (method/proxies.py); 0: every splat its own.
     proxy_sigma: float = 0.5
@@ -80,7 +77,6 @@ class Plan:
                 (math.isfinite(self.best_views) and self.best_views >= 0, "best_views must be >= 0"),
                 (math.isfinite(self.split_cap) and 0 <= self.split_cap <= 4, "split_cap must be in [0, 4]"),
                 (math.isfinite(self.proxy_sigma) and self.proxy_sigma >= 0, "proxy_sigma must be >= 0"),
-                (math.isfinite(self.coherence) and self.coherence >= 0, "coherence must be >= 0"),
             ]
         )
 

@@ -6,10 +6,7 @@ a pyramid level and a patch size is:
 
 1. matching: each estimate patch on a grid (gap smaller than the patch, random grid offset per pass) to
    its nearest style patch, L2 distance in a PCA subspace of the style's patches, searched exhaustively
-   by chunked matrix multiplies (:func:`nearest_patches`); with ``coherence`` (kappa) > 0, then coherent: a patch
-   continues a grid neighbour's copy of the painting where that is within (1 + kappa) of its own match
-   (:func:`coherent_corners`; Ashikhmin 2001, Hertzmann et al. 2001), so the painting's strokes run on across
-   patches instead of being cut into tiles one grid step long;
+   by chunked matrix multiplies (:func:`nearest_patches`);
 2. robust aggregation: X~ = argmin_X sum_ij ||R_ij X - z_ij||^r by IRLS, weights ||R_ij X - z_ij||^(r-2)
    (:func:`robust_aggregate`);
 3. content fusion, below the stroke scale only: X = X~ + W / (1 + W) (blur(C') - blur(X~)), C' the content
@@ -146,11 +143,6 @@ class SynthSettings:
     # palette, not its upsampled blur.
     final_match: bool = False
     noise: float = 50.0 / 255.0  # matching noise of a stage's first pass, x sqrt(1 - its ladder entry)
-    # Coherent matching (kappa of Hertzmann et al. 2001): a patch takes a grid neighbour's translation into the
-    # painting when that copy is within (1 + kappa) of its own nearest patch's squared distance, so copied regions
-    # run on past one patch and the painting's long strokes with them (:func:`coherent_corners`). 0: each patch on
-    # its own.
-    coherence: float = 0.0
     histogram_matching: bool = True
     search_chunk: int = 2048  # estimate patches per matrix multiply of the nearest-patch search
 
@@ -174,7 +166,7 @@ class SynthSettings:
             raise ConfigError(f"synth backend: edge_level must be >= 0, got {self.edge_level}")
         if not (math.isfinite(self.light_weight) and 0.0 <= self.light_weight <= 1.0):
             raise ConfigError(f"synth backend: light_weight must be in [0, 1], got {self.light_weight}")
-        for name in ("content_weight", "edge_floor", "edge_gain", "noise", "content_sigma", "coherence"):
+        for name in ("content_weight", "edge_floor", "edge_gain", "noise", "content_sigma"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ConfigError(f"synth backend: {name} must be finite and >= 0, got {getattr(self, name)}")
 
@@ -297,86 +289,6 @@ def nearest_patches(queries: torch.Tensor, library: torch.Tensor, chunk: int = 2
     return out
 
 
-COHERENCE_SWEEPS = 1  # rounds of a forward and a backward scan over the patch grid (a second changed little)
-
-
-def coherent_corners(
-    queries: torch.Tensor,  # [P, C s^2] the kept patches of the estimate, in pixels
-    corners: torch.Tensor,  # [P] each one's nearest patch: flat top-left index into ``source``
-    source: torch.Tensor,  # [C, 2 h w] the style at the level, its mirror image below it (StyleLibrary.source)
-    width: int,  # w, of the style at the level
-    size: int,
-    ys: torch.Tensor,  # [a] the grid's corners
-    xs: torch.Tensor,  # [b]
-    kept: torch.Tensor,  # [a b] bool: the grid's patches that are matched (the rows of ``queries``)
-    kappa: float,
-    sweeps: int = COHERENCE_SWEEPS,
-) -> torch.Tensor:  # [P]
-    """Each patch's corner after coherent matching (Ashikhmin 2001; Hertzmann et al. 2001's kappa; PatchMatch's
-    propagation). Scanning the grid forward (candidates from the patches above and to the left) and backward (below
-    and to the right), a patch takes the closer of its two neighbours' translations into the painting (the neighbour's
-    corner moved by the grid step) when that copy's squared distance is within (1 + kappa) of its own nearest patch's
-    and, once it has taken one, closer than the one it has. The scan runs along anti-diagonals, whose patches do not
-    depend on each other. The copy may lie anywhere in the painting, not only among the library's sampled patches; it
-    stays inside the painting, or its mirror image, where the neighbour's is."""
-    a, b = ys.numel(), xs.numel()
-    level_height = source.shape[1] // width // 2
-    offsets = (torch.arange(size)[:, None] * width + torch.arange(size)[None, :]).reshape(-1)
-
-    def distance(patches: torch.Tensor, corner: torch.Tensor) -> torch.Tensor:
-        copies = source[:, corner[:, None] + offsets[None, :]].permute(1, 0, 2).reshape(corner.numel(), -1)
-        return (patches - copies).square().sum(1)
-
-    def grid(values: torch.Tensor, fill) -> torch.Tensor:  # the kept patches' values on the whole grid, flat
-        out = torch.full((a * b, *values.shape[1:]), fill, dtype=values.dtype)
-        out[kept] = values
-        return out
-
-    patches = grid(queries, 0.0)
-    rows, cols = grid(corners // width, 0), grid(corners % width, 0)
-    best = grid(distance(queries, corners), 0.0)
-    limit = (1.0 + kappa) * best
-    taken = torch.zeros(a * b, dtype=torch.bool)
-    scans = {}
-    for step in (1, -1):  # each anti-diagonal's patches, and their two neighbours already scanned (once per grid)
-        order = range(a + b - 1) if step == 1 else range(a + b - 2, -1, -1)
-        scans[step] = []
-        for diagonal in order:
-            i = torch.arange(max(0, diagonal - b + 1), min(diagonal, a - 1) + 1)
-            j = diagonal - i
-            here = i * b + j
-            sources = []
-            for ni, nj in ((i - step, j), (i, j - step)):
-                inside = (ni >= 0) & (ni < a) & (nj >= 0) & (nj < b)
-                there = ni.clamp(0, a - 1) * b + nj.clamp(0, b - 1)
-                inside &= kept[here] & kept[there]
-                shift = (ys[i] - ys[ni.clamp(0, a - 1)], xs[j] - xs[nj.clamp(0, b - 1)])
-                sources.append((inside, there, shift))
-            scans[step].append((here, sources))
-    for _ in range(sweeps):
-        for step in (1, -1):
-            for here, sources in scans[step]:
-                found = torch.full((here.numel(),), math.inf, dtype=best.dtype)
-                found_row, found_col = rows[here].clone(), cols[here].clone()
-                for inside, there, (shift_y, shift_x) in sources:
-                    row, col = rows[there] + shift_y, cols[there] + shift_x
-                    low = rows[there] // level_height * level_height  # the half the neighbour's copy is in
-                    ok = inside & (row >= low) & (row <= low + level_height - size) & (col >= 0)
-                    ok &= (col <= width - size) & ((row != rows[here]) | (col != cols[here]))
-                    where = torch.nonzero(ok)[:, 0]
-                    if where.numel() == 0:
-                        continue
-                    d = distance(patches[here[where]], row[where] * width + col[where])
-                    closer = d < found[where]
-                    where, d = where[closer], d[closer]
-                    found[where], found_row[where], found_col[where] = d, row[where], col[where]
-                accept = (found <= limit[here]) & (~taken[here] | (found < best[here]))
-                chosen = here[accept]
-                rows[chosen], cols[chosen], best[chosen] = found_row[accept], found_col[accept], found[accept]
-                taken[chosen] = True
-    return (rows * width + cols)[kept]
-
-
 @dataclass
 class StyleLibrary:
     """Style patches of one size at one pyramid level, kept as positions (not pixels) with their PCA projection.
@@ -398,10 +310,7 @@ class StyleLibrary:
         return self.corners.numel()
 
     def patches(self, rows: torch.Tensor | None = None) -> torch.Tensor:  # [R] -> [R, 3 s^2] (all rows: None)
-        return self.at(self.corners if rows is None else self.corners[rows])
-
-    def at(self, corners: torch.Tensor) -> torch.Tensor:  # [R] flat top-left indices into source -> [R, 3 s^2]
-        """The patches at any corners of the source, sampled by the library or not."""
+        corners = self.corners if rows is None else self.corners[rows]
         offsets = (torch.arange(self.size)[:, None] * self.width + torch.arange(self.size)[None, :]).reshape(-1)
         index = corners[:, None] + offsets[None, :]
         return self.source[:, index].permute(1, 0, 2).reshape(index.shape[0], -1)
@@ -629,7 +538,7 @@ class PaintingField:
     """Where in the painting each pixel of a proposal comes from: per pixel at the proposal size, a pixel of
     ``source`` (the painting as the backend was given it, its mirror image below it: [3, 2 Hs, Ws]); ``valid`` is
     False where no matched patch covers the pixel. Each pixel takes the patch whose centre is nearest, so the field is
-    piecewise a translation: one per patch, or per run of patches that coherent matching copied together."""
+    piecewise a translation, one per patch."""
 
     rows: torch.Tensor  # [H, W] long, in [0, 2 Hs)
     cols: torch.Tensor  # [H, W] long, in [0, Ws)
@@ -909,12 +818,10 @@ class SynthBackend(ProposalBackend):
         if index.shape[0] == 0:
             return estimate, 0.0
         # E-step: nearest style patches; M-step: robust aggregation, content fusion, colour transfer.
-        probed = extract_patches(probe, index)
-        corners = library.corners[nearest_patches(library.project(probed), library.projected, s.search_chunk)]
-        if s.coherence > 0.0:
-            corners = coherent_corners(probed, corners, library.source, library.width, size, ys, xs, kept, s.coherence)
-        self._matched = _Matches(level, size, ys, xs, kept, corners, library.width)
-        matches = library.at(corners)
+        queries = library.project(extract_patches(probe, index))
+        rows = nearest_patches(queries, library.projected, s.search_chunk)
+        self._matched = _Matches(level, size, ys, xs, kept, library.corners[rows], library.width)
+        matches = library.patches(rows)
         energy = (extract_patches(filled, index) - matches).norm(dim=1).pow(s.robust_power).mean() / matches.shape[1]
         synthesis = robust_aggregate(estimate, matches, index, s.robust_power, s.irls_iterations)
         content_low, weight = self._content(content, style, coverage, keys, level)
