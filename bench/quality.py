@@ -46,6 +46,9 @@ too), means over the evaluation views, on the pixels the scene covers (alpha > 0
   out), 4 px inside the silhouette; its deviation over the painting's own, the painting resampled to the view's
   size x the run's Stroke Size (the standard preset's for the unstylized and colour-transfer rows). 1: marks as
   strong as the painting's; about 0: none (a colour transfer, a blur);
+- ``elongation`` (``metrics.mark_length``): how long the marks run for their width, the fine band's correlation length
+  along the local mark direction over that across it, over the painting's at the run's Stroke Size (1: strokes as
+  elongated as the painting's; below: fragments, dabs and blobs);
 - short- (neighbouring evaluation views) and long-range (opposite views) depth-warp RMSE (lower is more
   consistent; the unstylized row is the scene's own floor);
 - how far the fit got, from the run's log (stylizer rows): the smallest share of a stage's target gap its
@@ -118,6 +121,7 @@ COLUMNS = (
     ("marks_fine", "marks fine", 2),
     ("marks_mid", "mid", 2),
     ("marks_coarse", "coarse", 2),
+    ("mark_elongation", "elongation", 2),
     ("short_rmse", "short RMSE ↓", 4),
     ("long_rmse", "long RMSE ↓", 4),
     ("min_closed", "closed ↑", 2),

@@ -791,3 +791,33 @@ def test_model_errors(tiny_models, tmp_path):
     with pytest.raises(ModelError, match="cannot load the DINO weights") as info:
         clip_dino.load_dino(tiny_models / "config_only")
     assert "\n" not in str(info.value)
+
+
+def test_mark_length_follows_strokes_round_and_is_short_for_dabs_noise_and_flats():
+    """Strokes 30 px long run far along their direction and about a pixel across it, whichever way they curve; the same
+    strokes cut into 6 px pieces run short; blobs (a blur) run further but as far across, so their elongation is low;
+    noise runs nowhere; a flat image 0."""
+    g = torch.Generator().manual_seed(0)
+    h, w = 96, 128
+    y, x = torch.meshgrid(torch.arange(h, dtype=F64), torch.arange(w, dtype=F64), indexing="ij")
+    angle = 0.6 * torch.sin(x / 40.0)  # the strokes' direction turns across the image
+    along = x * torch.cos(angle) + y * torch.sin(angle)
+    across = y * torch.cos(angle) - x * torch.sin(angle)
+    lane = torch.floor(across / 5.0).long() % 64
+    shade = torch.rand(64, 64, generator=g, dtype=F64)
+    strokes = shade[lane, torch.floor(along / 30.0).long() % 64].expand(3, h, w)
+    length, width = metrics.mark_length(strokes)
+    assert length / width > 5.0  # 5.5 / 0.73
+    cut = shade[lane, torch.floor(along / 6.0).long() % 64].expand(3, h, w)
+    assert metrics.mark_length(cut)[0] < 0.5 * length  # 1.9
+    blobs = metrics.gaussian_blur(torch.rand(1, 3, h, w, generator=g, dtype=F64), 3.0)[0]
+    noise = torch.rand(3, h, w, generator=g, dtype=F64)
+    for image in (blobs, noise):  # 4.2 / 2.1 and 0.67 / 0.54
+        other_length, other_width = metrics.mark_length(image)
+        assert other_length / other_width < 0.5 * length / width
+    assert metrics.mark_length(torch.full((3, h, w), 0.4, dtype=F64)) == (0.0, 0.0)
+    # Masked: the strokes inside a silhouette on black measure as the strokes do.
+    mask = torch.zeros(h, w, dtype=torch.bool)
+    mask[8:-8, 8:-8] = True
+    inside = metrics.mark_length(torch.where(mask, strokes, 0.0), mask)
+    assert inside[0] == pytest.approx(length, rel=0.25) and inside[1] < 1.0

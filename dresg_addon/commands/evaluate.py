@@ -17,7 +17,9 @@ base render covers:
 - mark contrast ``marks_fine``, ``marks_mid``, ``marks_coarse``: the luminance band-pass (differences of Gaussians at
   sigma 0.6/1.2, 1.2/2.4 and 2.4/4.8 px) of the 2x render area-downsampled to the cameras' size, less what the base
   render's same band explains, 4 px inside the silhouette, over the painting's own at ``--stroke-size`` (1: marks
-  as strong as the painting's, about 0: none);
+  as strong as the painting's, about 0: none); ``mark_elongation``: how long the marks run for their
+  width (the fine band's correlation length along the local mark direction over that across it) over the painting's
+  own (1: strokes as elongated as the painting's; below: fragments, dabs and blobs);
 - optional CLIP-S (``--clip``) and DINO-C (``--dino``) with local transformers weights.
 
 Along the path: the stylized render of view i warped into view i + gap with the stylized scene's
@@ -289,6 +291,7 @@ def format_report(report: dict) -> str:
         ("marks fine", "marks_fine"),
         ("mid", "marks_mid"),
         ("coarse", "marks_coarse"),
+        ("elongation", "mark_elongation"),
         ("CLIP-S", "clip_s"),
         ("DINO-C", "dino_c"),
         ("alpha", "alpha_coverage"),

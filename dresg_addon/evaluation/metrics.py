@@ -78,6 +78,7 @@ __all__ = [
     "luminance",
     "mark_band_scales",
     "mark_contrast",
+    "mark_length",
     "masked_rmse",
     "measure_render",
     "peak_rss_mb",
@@ -403,6 +404,72 @@ def mark_contrast(
     spread = ((da - beta * db).square().sum((2, 3)) / count[:, :, 0, 0]).sqrt()  # [B, n]
     out = torch.where(scales > TEXTURE_FLOOR, spread / scales.clamp_min(TEXTURE_FLOOR), 0.0).to(ab.dtype)
     return out if image.ndim == 4 else out[0]
+
+
+MARK_LENGTH_BAND = 0  # the band of MARK_BANDS whose marks are followed (the fine one: a stroke's bristles)
+MARK_LENGTH_REACH = 32  # px: the longest shift the correlation is followed to (a longer mark counts as this)
+ORIENTATION_SIGMA = 4.0  # px: the structure tensor's window, the scale at which a mark has one direction
+
+
+def mark_length(
+    image: torch.Tensor,  # [3, H, W]
+    mask=None,  # [H, W]: bool, or alpha
+    erode: int = 4,
+) -> tuple[float, float]:  # (along, across) in px
+    """How far the marks run: the distance at which the luminance band's correlation with itself, shifted along the
+    local mark direction, falls to a half (``along``), and the same across it (``across``).
+
+    The band is :data:`MARK_BANDS`' fine one (a difference of Gaussians at sigma 0.6/1.2 px: a stroke's bristles and
+    edges); the direction at each pixel is the structure tensor's (gradients of the band, summed over a Gaussian
+    window of :data:`ORIENTATION_SIGMA` px), the mark running across its strongest gradient, so swirling strokes are
+    followed round. The correlation is over the counted pixels (every pixel within ``erode`` px covered) whose
+    shifted place is counted too, shifts by bilinear sampling, at whole pixels up to :data:`MARK_LENGTH_REACH` (the
+    half crossing linearly interpolated; a mark longer than the reach counts as the reach). Long bristled strokes give
+    a long ``along`` and an ``across`` of about a pixel; strokes cut into short pieces a short ``along``; noise about
+    half a pixel both ways; a flat image 0.0. A blur lengthens both (the band of a smooth image correlates far every
+    way), so ``along / across``, the marks' elongation, is the measure to compare: blobs give about 2, the demo's
+    painting about 5.5."""
+    ab = image[None].to(torch.float64)
+    covered = _pair_mask(mask, ab, "mark_length")
+    _check_erode(erode, "mark_length")
+    weight = None if covered is None else covered[:, None].to(torch.float64)
+    _, inner, outer = MARK_BANDS[MARK_LENGTH_BAND]
+    band = luminance_bands(luminance(ab), weight, ((None, inner, outer),))  # [1, 1, H, W]
+    counted = _eroded(covered, erode, ab)[:, None].to(torch.float64)
+    gy = torch.zeros_like(band)
+    gx = torch.zeros_like(band)
+    gy[..., 1:-1, :] = (band[..., 2:, :] - band[..., :-2, :]) / 2.0
+    gx[..., :, 1:-1] = (band[..., :, 2:] - band[..., :, :-2]) / 2.0
+    tensor = gaussian_blur(torch.cat([gx * gx, gx * gy, gy * gy], 1) * counted, ORIENTATION_SIGMA)
+    gradient = 0.5 * torch.atan2(2.0 * tensor[:, 1], tensor[:, 0] - tensor[:, 2])  # [1, H, W]: strongest gradient
+    height, width = band.shape[-2:]
+    ys, xs = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij"
+    )
+    values = band[0, 0][counted[0, 0] > 0]
+    if values.numel() < 2 or float(values.std()) <= TEXTURE_FLOOR:
+        return 0.0, 0.0
+
+    def length(angle: torch.Tensor) -> float:
+        dx, dy = torch.cos(angle[0]), torch.sin(angle[0])
+        previous = 1.0
+        for step in range(1, MARK_LENGTH_REACH + 1):
+            grid = torch.stack(
+                [(xs + step * dx) * 2.0 / (width - 1) - 1.0, (ys + step * dy) * 2.0 / (height - 1) - 1.0], -1
+            )[None]
+            moved = F.grid_sample(torch.cat([band, counted], 1), grid, align_corners=True, padding_mode="zeros")
+            pair = (counted[0, 0] > 0) & (moved[0, 1] > 0.999)
+            if int(pair.sum()) < 2:
+                return float(step)
+            a, b = band[0, 0][pair], moved[0, 0][pair]
+            a, b = a - a.mean(), b - b.mean()
+            rho = float((a * b).sum() / ((a.square().sum() * b.square().sum()).sqrt().clamp_min(1e-30)))
+            if rho < 0.5:
+                return step - 1 + (previous - 0.5) / max(previous - rho, 1e-12)
+            previous = rho
+        return float(MARK_LENGTH_REACH)
+
+    return length(gradient + math.pi / 2), length(gradient)
 
 
 def forms_similarity(

@@ -29,6 +29,10 @@ key                         better   what it is
                                      painting's; about 0: none, or only the capture's texture)
 ``marks_mid``               near 1   the same at sigma 1.2/2.4 px
 ``marks_coarse``            near 1   the same at sigma 2.4/4.8 px
+``mark_elongation``         near 1   how long the marks run for their width: the fine band's correlation length along
+                                     the local mark direction over that across it (``metrics.mark_length``), 4 px
+                                     inside the silhouette, over the painting's own at the run's Stroke Size (1:
+                                     strokes as elongated as the painting's; below: fragments, dabs, blobs)
 ``short_rmse``              lower    view i warped into view i + 1 with the rendered depth, masked RMSE
 ``long_rmse``               lower    the same into view i + N // 2 (opposite views on a ring)
 ==========================  =======  ===========================================================================
@@ -57,7 +61,17 @@ from . import metrics
 
 SCALES = (("sw_patches", 2), ("sw_patches_half", 4), ("sw_patches_quarter", 8))  # downsampling of the 2x render
 MARK_KEYS = tuple(name for name, _, _ in metrics.MARK_BANDS)  # marks_fine, marks_mid, marks_coarse
-PER_VIEW_KEYS = ("sw_colors", "ssim", "structure", "texture_kept", "texture_kept_2x", "shapes", "forms", *MARK_KEYS)
+PER_VIEW_KEYS = (
+    "sw_colors",
+    "ssim",
+    "structure",
+    "texture_kept",
+    "texture_kept_2x",
+    "shapes",
+    "forms",
+    *MARK_KEYS,
+    "mark_elongation",
+)
 KEYS = (*(key for key, _ in SCALES), *PER_VIEW_KEYS, "short_rmse", "long_rmse")
 
 
@@ -242,6 +256,7 @@ def evaluate_views(
     ):
         per_view[key] = torch.stack([measure(a, b, mask=m) for a, b, m in pairs])
     per_view.update(zip(MARK_KEYS, _mark_contrast(painting_t, *downsampled[2], base.rgb_2x, stroke_size).T))
+    per_view["mark_elongation"] = _mark_elongation(painting_t, *downsampled[2], stroke_size)
     per_view["texture_kept_2x"] = torch.stack(
         [metrics.texture_kept(a, b, mask=m, erode=8) for a, b, m in zip(large, base.rgb_2x, base.alpha_2x)]
     )
@@ -256,6 +271,28 @@ def evaluate_views(
         large,
         (int(style.shape[2]), int(style.shape[1])),
     )
+
+
+def _mark_elongation(
+    painting: torch.Tensor,  # [3, h, w]
+    renders: list[torch.Tensor],  # the stylized 2x renders area-downsampled by 2, [3, H, W]
+    alphas: list[torch.Tensor],  # the base's 2x coverage area-downsampled alike, [H, W]
+    stroke_size: float,
+) -> torch.Tensor:  # [views]
+    """Every view's marks' length over their width (:func:`~.metrics.mark_length`, along / across) at the fit size,
+    over the painting's at its Stroke Size (0 where either has no marks to measure)."""
+
+    def elongation(image: torch.Tensor, mask=None) -> float:
+        along, across = metrics.mark_length(image, mask)
+        return along / across if across > 0 else 0.0
+
+    own, values = {}, []
+    for image, alpha in zip(renders, alphas):
+        height, width = image.shape[1:]
+        if (width, height) not in own:
+            own[width, height] = elongation(painting_for_marks(painting, width, height, stroke_size))
+        values.append(elongation(image, alpha) / own[width, height] if own[width, height] > 0 else 0.0)
+    return torch.tensor(values, dtype=torch.float64)
 
 
 def _mark_contrast(
