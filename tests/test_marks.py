@@ -14,7 +14,7 @@ from dresg_addon.method.marks import (
     ViewVote,
     carried_targets,
     fine_band,
-    owners_fields,
+    first_views_fields,
     paint_view,
     vote_view,
 )
@@ -140,8 +140,9 @@ def plane_view(camera: Camera, block: int, owner: Camera):
 
 
 def carried_plane(block: int = 4):
-    """The plane's owner view from above and a view tilted towards it and closer; the owner's field a translation
-    into a painting whose colour is its own (row, column), so an image painted from it says where each pixel is."""
+    """The plane's owner view from above (the first) and a view tilted towards it and closer; the owner's field a
+    translation into a painting whose colour is its own (row, column), so an image painted from it says where each
+    pixel is."""
     owner = Camera(32, 32, 32.0, 32.0, 16.0, 16.0, look_at([0, 0, 1.0], [0, 0, 0]), "owner")
     tilted = Camera(32, 32, 32.0, 32.0, 16.0, 16.0, look_at([0.35, 0.1, 0.6], [0, 0, 0]), "tilted")
     rows, cols = torch.meshgrid(torch.arange(80.0), torch.arange(40.0), indexing="ij")
@@ -170,7 +171,7 @@ def test_a_stroke_the_owner_paints_runs_on_in_a_tilted_view_where_a_translation_
     steps_back = [int((by_splat[1 - axis][inner].diff(dim=axis) < 0).sum()) for axis in (0, 1)]
     assert sum(steps_back) >= 30, steps_back  # of 480 steps
     # Each pixel takes the owner's field at its point: the owner pixel it falls in, moved by (3, 4).
-    rows, cols, found = owners_fields(1, torch.arange(32 * 32), torch.zeros(32 * 32, dtype=torch.long), surfaces)
+    rows, cols, found = first_views_fields(1, torch.arange(32 * 32), surfaces)
     assert found.reshape(32, 32)[inner].all()
     assert torch.equal(rows.reshape(32, 32)[inner].float(), by_depth[0][inner])
     # In the owner itself it is its own field: the painting the owner's proposal shows.
@@ -179,25 +180,32 @@ def test_a_stroke_the_owner_paints_runs_on_in_a_tilted_view_where_a_translation_
     assert torch.equal(own[0], surfaces.fields[0].rows.float()) and torch.equal(own[1], surfaces.fields[0].cols.float())
 
 
-def test_pixels_the_owner_does_not_see_keep_their_splats_translation():
+def test_a_point_the_first_view_does_not_see_takes_the_next_views_field_and_else_its_splats_translation():
     marks, source, surfaces, in_t = carried_plane()
     by_splat, _ = paint_view(in_t, (32, 32), (32, 32), marks, source)
+    (top, tilted), (field, _) = surfaces.cameras, surfaces.fields
     depth_o, depth_t = surfaces.depths[0].clone(), surfaces.depths[1].clone()
     depth_t[:4] = 0.0  # no depth: nothing to unproject
-    depth_o[:, :10] *= 0.5  # something nearer hides the plane from the owner there
-    field = surfaces.fields[0]
-    field = PaintingField(field.rows, field.cols, field.valid.clone(), field.source)
-    field.valid[20:] = False  # the owner's synthesis covered nothing there
-    cut = Surfaces(surfaces.cameras, [depth_o, depth_t], [field, field])
+    depth_o[:, :10] *= 0.5  # something nearer hides the plane from the first view there
+    blank = PaintingField(field.rows, field.cols, torch.zeros(32, 32, dtype=torch.bool), source)  # covered nothing
+    pixels = torch.arange(32 * 32)
+    cut = Surfaces([top, tilted], [depth_o, depth_t], [field, blank])
+    _, _, first = first_views_fields(1, pixels, cut)
+    first = first.reshape(32, 32)
+    assert not first[:4].any() and first[8:16, 20:28].all() and not first[8:24, 2:6].any()
     image, _ = paint_view(in_t, (32, 32), (32, 32), marks, source, 1, cut)
-    _, _, found = owners_fields(1, torch.arange(32 * 32), torch.zeros(32 * 32, dtype=torch.long), cut)
-    found = found.reshape(32, 32)
-    assert not found[:4].any() and found[8:16, 20:28].all() and torch.isfinite(image).all()
-    assert torch.equal(image[:, ~found], by_splat[:, ~found])
-    # A point behind the owner: a camera beyond the plane's back looking away from it sees none of it.
+    assert torch.isfinite(image).all() and torch.equal(image[:, ~first], by_splat[:, ~first])
+    # With a field of its own, the tilted view paints what the first view hides from its own copy of the painting.
+    own = translation_field(32, 32, source, (20, 10))
+    rows, cols, found = first_views_fields(1, pixels, Surfaces([top, tilted], [depth_o, depth_t], [field, own]))
+    rows, cols, found = rows.reshape(32, 32), cols.reshape(32, 32), found.reshape(32, 32)
+    assert torch.equal(found, depth_t > 0)
+    hidden = found & ~first
+    assert torch.equal(rows[hidden], own.rows[hidden]) and torch.equal(cols[hidden], own.cols[hidden])
+    # A point behind a view: a camera beyond the plane's back looking away from it sees none of it.
     away = Camera(32, 32, 32.0, 32.0, 16.0, 16.0, look_at([0, 0, -1.0], [0, 0, -2.0]), "away")
-    behind = Surfaces([away, surfaces.cameras[1]], [torch.ones(32, 32), surfaces.depths[1]], surfaces.fields)
-    rows, cols, found = owners_fields(1, torch.arange(32 * 32), torch.zeros(32 * 32, dtype=torch.long), behind)
+    behind = Surfaces([away, tilted], [torch.ones(32, 32), depth_t], [field, blank])
+    rows, cols, found = first_views_fields(1, pixels, behind)
     assert not found.any() and rows.eq(0).all() and cols.eq(0).all()
     image, _ = paint_view(in_t, (32, 32), (32, 32), marks, source, 1, behind)
     assert torch.equal(image, by_splat)
