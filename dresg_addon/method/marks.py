@@ -126,7 +126,7 @@ class CarriedMarks:
 @dataclass
 class Surfaces:
     """Every view's camera, rendered depth (camera-space z at the camera's size, 0 where nothing) and painting field
-    (at the proposal size): what painting a view through its owners' fields takes (:func:`paint_view`)."""
+    (at the proposal size): what painting a view through the views that see its points takes (:func:`paint_view`)."""
 
     cameras: Sequence[Camera]
     depths: Sequence[torch.Tensor]  # V x [H, W]
