@@ -8,7 +8,16 @@ import torch
 
 from dresg_addon.method.config import preset_run
 from dresg_addon.method.loop import Stylization, stylize
-from dresg_addon.method.marks import CarriedMarks, ViewVote, carried_targets, fine_band, paint_view, vote_view
+from dresg_addon.method.marks import (
+    CarriedMarks,
+    Surfaces,
+    ViewVote,
+    carried_targets,
+    fine_band,
+    first_views_fields,
+    paint_view,
+    vote_view,
+)
 from dresg_addon.method.proposal.synth import PaintingField, SynthBackend, low_pass
 from dresg_addon.method.schedule import stage_timesteps
 from dresg_addon.raster.rasterizer import render_scene
@@ -110,6 +119,96 @@ def test_each_view_is_painted_as_the_splats_carry_the_painting_so_its_strokes_fo
     three = (torch.arange(3), torch.zeros(3, dtype=torch.long), one[:3])
     column, _ = paint_view(three, (3, 1), (3, 1), mirror, source)
     assert torch.equal(column[:, :, 0], source[:, [20, 20, 21], 5])
+
+
+def plane_view(camera: Camera, block: int, owner: Camera):
+    """A view of the z = 0 plane: its depth [H, W] and each pixel's splat, the ``block`` x ``block`` square of the
+    owner's pixels its point falls in (the splats the owner sees at ``block`` pixels)."""
+    c2w = camera.camera_to_world
+    v, u = np.meshgrid(np.arange(camera.height) + 0.5, np.arange(camera.width) + 0.5, indexing="ij")
+    rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)], -1) @ c2w[:3, :3].T
+    t = -c2w[2, 3] / rays[..., 2]  # camera-space z of the plane, as the ray's camera z is 1
+    points = c2w[:3, 3] + t[..., None] * rays
+    seen = points @ owner.world_to_camera[:3, :3].T + owner.world_to_camera[:3, 3]
+    uo = owner.fx * seen[..., 0] / seen[..., 2] + owner.cx
+    vo = owner.fy * seen[..., 1] / seen[..., 2] + owner.cy
+    splat = (np.floor(vo / block) * (owner.width // block) + np.floor(uo / block)).astype(np.int64).ravel()
+    inside = ((uo >= 0) & (uo < owner.width) & (vo >= 0) & (vo < owner.height)).ravel()  # the plane's splats
+    pixel = torch.from_numpy(np.nonzero(inside)[0])
+    contributions = (pixel, torch.from_numpy(splat[inside]), torch.ones(pixel.numel()))
+    return torch.from_numpy(t).float(), contributions
+
+
+def carried_plane(block: int = 4):
+    """The plane's owner view from above (the first) and a view tilted towards it and closer; the owner's field a
+    translation into a painting whose colour is its own (row, column), so an image painted from it says where each
+    pixel is."""
+    owner = Camera(32, 32, 32.0, 32.0, 16.0, 16.0, look_at([0, 0, 1.0], [0, 0, 0]), "owner")
+    tilted = Camera(32, 32, 32.0, 32.0, 16.0, 16.0, look_at([0.35, 0.1, 0.6], [0, 0, 0]), "tilted")
+    rows, cols = torch.meshgrid(torch.arange(80.0), torch.arange(40.0), indexing="ij")
+    source = torch.stack([rows, cols, torch.zeros_like(rows)])  # [3, 2 x 40, 40]: the painting and its mirror
+    field = translation_field(32, 32, source, (3, 4))
+    depth_o, in_o = plane_view(owner, block, owner)
+    depth_t, in_t = plane_view(tilted, block, owner)
+    splats = (32 // block) ** 2
+    vote = vote_view(in_o, (32, 32), field, splats)
+    marks = CarriedMarks.from_votes([vote, ViewVote(torch.zeros(splats, 2, dtype=torch.float64), torch.zeros(splats))])
+    surfaces = Surfaces([owner, tilted], [depth_o, depth_t], [field, field])
+    return marks, source, surfaces, in_t
+
+
+def test_a_stroke_the_owner_paints_runs_on_in_a_tilted_view_where_a_translation_per_splat_cuts_it():
+    marks, source, surfaces, in_t = carried_plane()
+    assert marks.owner.max() == 0
+    by_splat, painted = paint_view(in_t, (32, 32), (32, 32), marks, source)
+    by_depth, painted_too = paint_view(in_t, (32, 32), (32, 32), marks, source, 1, surfaces)
+    assert torch.equal(painted, painted_too) and torch.isfinite(by_depth).all()
+    inner = (slice(8, 24), slice(8, 24))  # well inside the plane
+    # The tilted view is closer: a painting pixel spans more than one of its pixels, so along a row or a column the
+    # owner's strokes advance and never step back; a translation per splat steps back at every splat's border.
+    for image, axis in ((by_depth[1][inner], 1), (by_depth[0][inner], 0)):
+        assert (image.diff(dim=axis) >= 0).all()
+    steps_back = [int((by_splat[1 - axis][inner].diff(dim=axis) < 0).sum()) for axis in (0, 1)]
+    assert sum(steps_back) >= 30, steps_back  # of 480 steps
+    # Each pixel takes the owner's field at its point: the owner pixel it falls in, moved by (3, 4).
+    rows, cols, found = first_views_fields(1, torch.arange(32 * 32), surfaces)
+    assert found.reshape(32, 32)[inner].all()
+    assert torch.equal(rows.reshape(32, 32)[inner].float(), by_depth[0][inner])
+    # In the owner itself it is its own field: the painting the owner's proposal shows.
+    _, in_o = plane_view(surfaces.cameras[0], 4, surfaces.cameras[0])
+    own, _ = paint_view(in_o, (32, 32), (32, 32), marks, source, 0, surfaces)
+    assert torch.equal(own[0], surfaces.fields[0].rows.float()) and torch.equal(own[1], surfaces.fields[0].cols.float())
+
+
+def test_a_point_the_first_view_does_not_see_takes_the_next_views_field_and_else_its_splats_translation():
+    marks, source, surfaces, in_t = carried_plane()
+    by_splat, _ = paint_view(in_t, (32, 32), (32, 32), marks, source)
+    (top, tilted), (field, _) = surfaces.cameras, surfaces.fields
+    depth_o, depth_t = surfaces.depths[0].clone(), surfaces.depths[1].clone()
+    depth_t[:4] = 0.0  # no depth: nothing to unproject
+    depth_o[:, :10] *= 0.5  # something nearer hides the plane from the first view there
+    blank = PaintingField(field.rows, field.cols, torch.zeros(32, 32, dtype=torch.bool), source)  # covered nothing
+    pixels = torch.arange(32 * 32)
+    cut = Surfaces([top, tilted], [depth_o, depth_t], [field, blank])
+    _, _, first = first_views_fields(1, pixels, cut)
+    first = first.reshape(32, 32)
+    assert not first[:4].any() and first[8:16, 20:28].all() and not first[8:24, 2:6].any()
+    image, _ = paint_view(in_t, (32, 32), (32, 32), marks, source, 1, cut)
+    assert torch.isfinite(image).all() and torch.equal(image[:, ~first], by_splat[:, ~first])
+    # With a field of its own, the tilted view paints what the first view hides from its own copy of the painting.
+    own = translation_field(32, 32, source, (20, 10))
+    rows, cols, found = first_views_fields(1, pixels, Surfaces([top, tilted], [depth_o, depth_t], [field, own]))
+    rows, cols, found = rows.reshape(32, 32), cols.reshape(32, 32), found.reshape(32, 32)
+    assert torch.equal(found, depth_t > 0)
+    hidden = found & ~first
+    assert torch.equal(rows[hidden], own.rows[hidden]) and torch.equal(cols[hidden], own.cols[hidden])
+    # A point behind a view: a camera beyond the plane's back looking away from it sees none of it.
+    away = Camera(32, 32, 32.0, 32.0, 16.0, 16.0, look_at([0, 0, -1.0], [0, 0, -2.0]), "away")
+    behind = Surfaces([away, tilted], [torch.ones(32, 32), depth_t], [field, blank])
+    rows, cols, found = first_views_fields(1, pixels, behind)
+    assert not found.any() and rows.eq(0).all() and cols.eq(0).all()
+    image, _ = paint_view(in_t, (32, 32), (32, 32), marks, source, 1, behind)
+    assert torch.equal(image, by_splat)
 
 
 def test_owners_take_whole_surfaces_in_turn_and_unvoted_splats_have_none():

@@ -62,6 +62,9 @@ class Plan:
     # Each splat carries where in the painting its colour comes from, and the views' targets take their marks from
     # it (method/marks.py); only with a backend that says where its proposals' pixels come from.
     carry_marks: bool = False
+    # With carry_marks, each view is painted through the first view that sees each point, by depth (the strokes run
+    # on over the surface), else by a translation per splat (marks.paint_view).
+    marks_by_depth: bool = True
     # With geometry frozen, splats narrower than this many pixels in every active view share a colour per pixel-sized
     # cell during the fit (method/proxies.py); 0: every splat its own.
     proxy_sigma: float = 0.5

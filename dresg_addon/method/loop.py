@@ -56,7 +56,7 @@ from .fitting import (
     splat_footprint,
 )
 from .losses import FitLossWeights
-from .marks import CarriedMarks, carried_targets, paint_view, vote_view
+from .marks import CarriedMarks, Surfaces, carried_targets, paint_view, vote_view
 from .medium import medium_for
 from .optim import FitOptimizerSettings, make_fit_optimizer, scene_extent
 from .refine import split_wide_splats
@@ -574,8 +574,12 @@ class Stylization:
             self.hooks.check_cancel()
         marks = CarriedMarks.from_votes(votes)
         source = self.work.fields[0].source
+        surfaces = None
+        if self.plan.marks_by_depth:
+            surfaces = Surfaces(self.cameras, [fast.depth for fast in self.renderer.fast], self.work.fields)
         views = [
-            paint_view(m.samples(), fast.shape, self.size, marks, source) for m, fast in zip(maps, self.renderer.fast)
+            paint_view(m.samples(), fast.shape, self.size, marks, source, v, surfaces)
+            for v, (m, fast) in enumerate(zip(maps, self.renderer.fast))
         ]
         painted, masks = [image for image, _ in views], [mask for _, mask in views]
         sigma = self.entry.stroke_sigma(self.config.stroke_size) * self.fit_scale()

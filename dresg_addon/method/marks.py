@@ -12,9 +12,10 @@ the field is piecewise a translation (one per copied patch), so the vote is a mo
 (:func:`vote_view`). Its painting coordinate is its centre moved by that translation. The first view (in the views'
 order) whose vote has at least half the weight of the strongest owns the splat (:class:`CarriedMarks`): views take
 whole surfaces in turn, so neighbouring splats share an owner and its marks run on across them. Each view is then
-painted as the splats carry the painting (:func:`paint_view`): a pixel takes the painting at the coordinate of the
-splat drawn most there, moved by the pixel's place against that splat's centre. Inside a surface one view owns that
-is the owner's copy of the painting, translated, in every view: the strokes sit on the surface.
+painted as the splats carry the painting (:func:`paint_view`): a pixel takes what the first view that sees its
+surface point (by depth) shows there, that view's copy of the painting carried over the surface in every view, so
+the strokes sit on the surface and keep their length; where no view's field sees it, the painting at the coordinate
+of the splat drawn most there, moved by the pixel's place against that splat's centre.
 
 What the painting's raw pixels do not hold (the scene's forms and light, the palette's regions) is in the
 proposals' coarse bands, which the views agree on; so each view's target keeps its coarse bands and takes its fine
@@ -30,6 +31,8 @@ from dataclasses import dataclass
 
 import torch
 
+from ..scene.camera import Camera
+from ..scene.warp import DEPTH_TOLERANCE
 from .proposal.synth import PaintingField, low_pass
 
 COVERED = 0.5  # alpha above which a pixel's fine band comes from the splats' marks
@@ -120,16 +123,75 @@ class CarriedMarks:
         return self.owner >= 0
 
 
+@dataclass
+class Surfaces:
+    """Every view's camera, rendered depth (camera-space z at the camera's size, 0 where nothing) and painting field
+    (at the proposal size): what painting a view through the views that see its points takes (:func:`paint_view`)."""
+
+    cameras: Sequence[Camera]
+    depths: Sequence[torch.Tensor]  # V x [H, W]
+    fields: Sequence[PaintingField]
+
+
+def first_views_fields(
+    view: int,
+    where: torch.Tensor,  # [P] the view's pixels (flat, at its camera's size)
+    surfaces: Surfaces,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # -> rows [P], cols [P] into the source, found [P] bool
+    """Where in the painting the first view (in the views' order) that sees each pixel's surface point shows it: the
+    pixel unprojected by this view's depth, projected into each view in turn (``scene.warp``'s conventions), and that
+    view's field at its proposal pixel there. A view sees the point where it is in front of it, in its image, the
+    surface it draws there (depths within ``DEPTH_TOLERANCE``) and its field valid. Not found (rows and cols 0) where
+    the pixel has no depth or no view sees its point."""
+    camera = surfaces.cameras[view]
+    f64 = torch.float64
+    z = surfaces.depths[view].reshape(-1)[where].to(f64)
+    u = (where % camera.width).to(f64) + 0.5
+    v = (where // camera.width).to(f64) + 0.5
+    points = torch.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], 1)
+    rows, cols = torch.zeros_like(where), torch.zeros_like(where)
+    found = torch.zeros_like(where, dtype=torch.bool)
+    for other, (target, field) in enumerate(zip(surfaces.cameras, surfaces.fields)):
+        pick = torch.nonzero(~found & (z > 0))[:, 0]
+        if pick.numel() == 0:
+            break
+        transform = torch.as_tensor(target.world_to_camera @ camera.camera_to_world, dtype=f64)
+        seen = points[pick] @ transform[:3, :3].T + transform[:3, 3]
+        zo = seen[:, 2]
+        z_safe = torch.where(zo > 0, zo, 1.0)
+        # Clamped before the floor so that far off-screen points stay finite indices (they fail ``inside``).
+        uo = (target.fx * seen[:, 0] / z_safe + target.cx).clamp(-1.0, target.width + 1.0)
+        vo = (target.fy * seen[:, 1] / z_safe + target.cy).clamp(-1.0, target.height + 1.0)
+        inside = (zo > 0) & (uo >= 0) & (uo < target.width) & (vo >= 0) & (vo < target.height)
+        x = uo.floor().long().clamp(0, target.width - 1)
+        y = vo.floor().long().clamp(0, target.height - 1)
+        depth = surfaces.depths[other][y, x].to(f64)
+        rows_p, cols_p = field.rows.shape
+        yp, xp = y * rows_p // target.height, x * cols_p // target.width  # its proposal pixel, as vote_view's
+        ok = inside & (depth > 0) & ((zo - depth).abs() <= DEPTH_TOLERANCE * zo) & field.valid[yp, xp]
+        rows[pick] = torch.where(ok, field.rows[yp, xp], 0)
+        cols[pick] = torch.where(ok, field.cols[yp, xp], 0)
+        found[pick] = ok
+    return rows, cols, found
+
+
 def paint_view(
     contributions: tuple[torch.Tensor, torch.Tensor, torch.Tensor],  # the view's (fit pixel, splat, T alpha)
     fit_shape: tuple[int, int],
     size: tuple[int, int],  # (H, W) of the proposal, whose pixels the painting's coordinates are in
     marks: CarriedMarks,
     source: torch.Tensor,  # [3, 2 Hs, Ws] the painting and its mirror image (PaintingField.source)
+    view: int | None = None,  # this view's index in ``surfaces``
+    surfaces: Surfaces | None = None,  # None: each splat's translation alone
 ) -> tuple[torch.Tensor, torch.Tensor]:  # -> [3, H, W] at the fit size, [H, W] bool where it is painted
-    """The painting as the splats carry it, seen from this view: each pixel takes the painting at the coordinate of the
-    splat drawn most there, moved by the pixel's place against that splat's centre in this view. Inside a surface one
-    view owns, that is the owner's copy of the painting, translated; no splat's footprint blurs it."""
+    """The painting as the splats carry it, seen from this view.
+
+    With ``surfaces``, each pixel takes what the first view that sees its surface point shows there
+    (:func:`first_views_fields`): that view's copy of the painting, carried on over the surface by depth. Elsewhere
+    (and without ``surfaces``) it takes the painting at the coordinate of the splat drawn most there, moved by the
+    pixel's place against that splat's centre in this view: a translation per splat, which in a view other than the
+    splat's owner breaks the strokes at the splats' borders (foreshortening makes neighbouring splats' translations
+    disagree), and the splats' owners change from splat to splat where views share a surface."""
     pixel, splat, weight = contributions
     height, width = fit_shape
     carried = marks.carried[splat] & (weight > 0)
@@ -150,6 +212,9 @@ def paint_view(
     lower = (marks.coordinates[owner, 0] >= half).long() * half  # stay in the half (painting or mirror) it is in
     row = torch.minimum(torch.maximum(coordinate[:, 0], lower), lower + half - 1)
     col = coordinate[:, 1].clamp(0, cols - 1)
+    if surfaces is not None:
+        carried_row, carried_col, found = first_views_fields(view, where, surfaces)
+        row, col = torch.where(found, carried_row, row), torch.where(found, carried_col, col)
     image = torch.zeros(3, height * width)
     image[:, where] = source.reshape(3, -1)[:, row * cols + col]
     return image.reshape(3, height, width), painted.reshape(height, width)
