@@ -18,7 +18,8 @@ import argparse
 import sys
 import time
 
-from quality import SCENES  # bench/, beside this script
+import harness  # bench/, beside this script
+from quality import DENSIFIED, SCENES
 
 from dresg_addon.util.machine import load_average
 
@@ -52,7 +53,7 @@ def measure(scene, split, cameras) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scenes", default="demo,bonsai", help="comma-separated: demo, bonsai, luigi")
+    parser.add_argument("--scenes", default="demo,bonsai", help="comma-separated: demo, bonsai, luigi, bonsai8")
     parser.add_argument("--stroke-sigma", type=float, default=4.5, help="marks' scale in pixels of the views")
     parser.add_argument("--max-added-share", type=float, default=0.35, help="cap on splats added, share of the scene")
     parser.add_argument("--views", type=int, default=16)
@@ -76,6 +77,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {name} | absent: {path} |")
             continue
         scene = demo_scene() if path is None else read_scene(path)
+        if name in DENSIFIED:
+            scene = harness.densified(scene, DENSIFIED[name])
         size = {"width": args.width, "height": args.height, "up": up}
         fit_views = orbit_cameras(scene, args.views, **size)
         novel = orbit_cameras(scene, args.views, azimuth_offset_deg=180.0 / args.views, **size)

@@ -221,13 +221,20 @@ def test_bad_settings_are_refused(stroke, cap):
 # --- through a run --------------------------------------------------------------------------------------
 
 
-def _run_on_wide_scene(**kwargs):
+def _run_on_wide_scene(split_cap=0.5, split_width=1.0, **kwargs):
     from dresg_addon.method.config import preset_run
     from dresg_addon.method.loop import stylize
 
     # Stroke Size 0.5: marks 4.5 px wide at these cameras' size, narrower than four of the five wide splats
     config, plan = preset_run(
-        "cpu", stages=1, post_steps=0, proposal_width=32, proposal_height=24, stroke_size=0.5, split_cap=0.5
+        "cpu",
+        stages=1,
+        post_steps=0,
+        proposal_width=32,
+        proposal_height=24,
+        stroke_size=0.5,
+        split_cap=split_cap,
+        split_width=split_width,
     )
     style = np.random.default_rng(3).uniform(0.0, 1.0, (24, 32, 3)).astype(np.float32)
     return stylize(wide_scene(), cameras(), style, config, plan=plan, **kwargs)
@@ -247,6 +254,13 @@ def test_a_run_splits_the_wide_splats_says_so_and_returns_the_parents():
     np.testing.assert_array_equal(untouched.sh_dc, scene.sh_dc[result.parents])
 
 
+def test_finer_children_asked_for_split_into_more_of_them():
+    wide = len(_run_on_wide_scene().scene)
+    finer = _run_on_wide_scene(split_width=0.5).scene
+    assert len(finer) > wide
+    assert np.isfinite(finer.means).all() and np.isfinite(finer.log_scales).all()
+
+
 def test_a_masked_run_splits_only_the_selection_and_keeps_every_other_splat():
     scene = wide_scene()
     selected = np.zeros(len(scene), bool)
@@ -258,7 +272,9 @@ def test_a_masked_run_splits_only_the_selection_and_keeps_every_other_splat():
         np.testing.assert_array_equal(getattr(result.scene, name)[:n][~selected], getattr(scene, name)[~selected])
 
 
-def test_without_a_cap_the_scene_keeps_its_splats():
+def test_without_a_cap_the_scene_keeps_its_splats_and_only_standard_splits():
     from dresg_addon.method.config import PLANS
 
-    assert all(plan.split_cap == 0.0 for plan in PLANS.values())  # no preset splits until it is measured better
+    result = _run_on_wide_scene(split_cap=0.0)
+    assert result.parents is None and len(result.scene) == len(wide_scene())
+    assert [name for name, plan in PLANS.items() if plan.split_cap > 0] == ["standard"]

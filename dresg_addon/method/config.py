@@ -59,6 +59,8 @@ class Plan:
     # Splats the active views draw wider than the strokes are split first, adding at most this share of the scene
     # (method/refine.py); 0: the scene keeps its splats.
     split_cap: float = 0.0
+    # The split's children are at most this many stroke scales wide (the stroke scale: the backend's stroke sigma).
+    split_width: float = 1.0
     # Each splat carries where in the painting its colour comes from, and the views' targets take their marks from
     # it (method/marks.py); only with a backend that says where its proposals' pixels come from.
     carry_marks: bool = False
@@ -79,6 +81,7 @@ class Plan:
                 (0 <= self.early_stop < 1, "early_stop must be in [0, 1) (0: off)"),
                 (math.isfinite(self.best_views) and self.best_views >= 0, "best_views must be >= 0"),
                 (math.isfinite(self.split_cap) and 0 <= self.split_cap <= 4, "split_cap must be in [0, 4]"),
+                (math.isfinite(self.split_width) and 0.1 <= self.split_width <= 4, "split_width must be in [0.1, 4]"),
                 (math.isfinite(self.proxy_sigma) and self.proxy_sigma >= 0, "proxy_sigma must be >= 0"),
             ]
         )
@@ -201,8 +204,17 @@ def check_run_settings(config: StylizeConfig, plan: Plan | None = None) -> None:
 # (docs/decisions/004-no-post-stage.md), stopping once the look settles.
 PAPER_PLAN = Plan()
 PLANS: dict[str, Plan] = {
-    # The synthesis's marks carried by the splats (docs/decisions/015-carried-marks.md).
-    "standard": Plan(updates_per_stage=1, post_steps=0, early_stop=0.01, best_views=4.0, carry_marks=True),
+    # The synthesis's marks carried by the splats (docs/decisions/015-carried-marks.md), on splats split to a third
+    # of the strokes' width where the views draw them wider (docs/decisions/018-split-by-default.md).
+    "standard": Plan(
+        updates_per_stage=1,
+        post_steps=0,
+        early_stop=0.01,
+        best_views=4.0,
+        carry_marks=True,
+        split_cap=0.35,
+        split_width=0.3,
+    ),
     # Half the stages and views of standard and the joint fit alone: the best views cost it 43 -> 73 s on the bonsai.
     "preview": Plan(updates_per_stage=1, fit_steps=15, post_steps=0, early_stop=0.01, carry_marks=True),
     "paper": PAPER_PLAN,

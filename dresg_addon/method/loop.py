@@ -313,7 +313,7 @@ class Stylization:
         if cap <= 0 or self.entry.stroke_sigma is None:
             return
         self.hooks.report(0, 0, 1, "select", float("nan"), "finding the splats wider than the marks")
-        marks = self.entry.stroke_sigma(self.config.stroke_size) * self.fit_scale()
+        marks = self.entry.stroke_sigma(self.config.stroke_size) * self.fit_scale() * self.plan.split_width
         split = split_wide_splats(self.scene, self.cameras, marks, cap, self.raster, only=self.mask)
         self.hooks.check_cancel()
         if split.added == 0:

@@ -61,7 +61,7 @@ from functools import cache
 import numpy as np
 import torch
 
-from ..raster import RasterSettings, geometry_tensors, render
+from ..raster import RasterSettings, geometry_tensors, render, scene_covariances
 from ..raster.projection import FRUSTUM_GUARD, LOW_PASS, _rotation_columns
 from ..scene.camera import Camera
 from ..scene.gaussians import GaussianScene
@@ -169,9 +169,12 @@ def screen_axes(
     view_weights = torch.zeros(len(cameras), n)
     sum_sq = torch.zeros(n, 3, dtype=torch.float64)
     drawn = torch.zeros(n, dtype=torch.float64)
+    covariances = scene_covariances(scene)  # made once for all the views
     for v, camera in enumerate(cameras):
         with torch.no_grad():
-            out = render(means, quats, log_scales, logits, torch.zeros_like(means), camera, settings, visibility="all")
+            out = render(
+                means, quats, log_scales, logits, torch.zeros_like(means), camera, settings, "all", covariances=covariances
+            )
         view_weights[v] = out.visibility.float()
         index = torch.nonzero(out.visibility > 0).squeeze(-1)
         w = out.visibility[index].double()
