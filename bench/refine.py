@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """How many splats the render-preserving split adds, how long it takes, and how much it changes the render.
 
-    .venv/bin/python bench/refine.py [--scenes demo,bonsai,luigi] [--stroke-sigma 4.5] [--max-added-share 0.35]
+    .venv/bin/python bench/refine.py [--scenes demo,bonsai,luigi,bonsai8] [--stroke-sigma 1.35] [--max-added-share 0.35]
         [--views 16] [--width 448] [--height 320]
 
 Cameras as bench/quality.py places them: ``--views`` orbit cameras (the fit views, the ones the split is
@@ -54,7 +54,12 @@ def measure(scene, split, cameras) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", default="demo,bonsai", help="comma-separated: demo, bonsai, luigi, bonsai8")
-    parser.add_argument("--stroke-sigma", type=float, default=4.5, help="marks' scale in pixels of the views")
+    parser.add_argument(
+        "--stroke-sigma",
+        type=float,
+        default=1.35,
+        help="children at most this wide, pixels of the views (standard: 0.3 x 4.5)",
+    )
     parser.add_argument("--max-added-share", type=float, default=0.35, help="cap on splats added, share of the scene")
     parser.add_argument("--views", type=int, default=16)
     parser.add_argument("--width", type=int, default=448)
