@@ -203,6 +203,22 @@ def test_deterministic():
         assert np.array_equal(getattr(a.scene, field), getattr(b.scene, field))
 
 
+def test_blend_weights_from_the_views_colour_maps_measure_as_the_splits_own_renders():
+    from dresg_addon.method.refine import screen_axes
+    from dresg_addon.raster import ColorOnlyRenderer, RasterSettings, geometry_tensors
+
+    scene, views = wide_scene(), cameras()
+    geometry = geometry_tensors(scene)
+    maps = [ColorOnlyRenderer(*geometry, camera, RasterSettings()).map for camera in views]
+    given = [m.rmatvec(torch.ones(m.shape[0], 1))[:, 0] for m in maps]
+    for measured, rendered in zip(screen_axes(scene, views, blend_weights=given), screen_axes(scene, views)):
+        np.testing.assert_allclose(measured, rendered, rtol=1e-5, atol=1e-6)
+    first = split_wide_splats(scene, views, 4.5, 10_000, blend_weights=given)
+    np.testing.assert_array_equal(first.parent_index, split_wide_splats(scene, views, 4.5, 10_000).parent_index)
+    with pytest.raises(ValueError, match="2 views' blend weights for 3 cameras"):
+        screen_axes(scene, views, blend_weights=given[:2])
+
+
 def test_grid_keeps_the_variance():
     for k in range(3, MAX_PER_AXIS + 1, 2):
         offsets, child = _grid(k)

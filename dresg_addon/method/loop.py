@@ -314,7 +314,10 @@ class Stylization:
             return
         self.hooks.report(0, 0, 1, "select", float("nan"), "finding the splats wider than the marks")
         marks = self.entry.stroke_sigma(self.config.stroke_size) * self.fit_scale() * self.plan.split_width
-        split = split_wide_splats(self.scene, self.cameras, marks, cap, self.raster, only=self.mask)
+        drawn = None
+        if self.rendered is not None:  # the selection's renders: each splat's blend weight is its map's column sum
+            drawn = [r.map.rmatvec(torch.ones(r.map.shape[0], 1))[:, 0] for r in self.rendered]
+        split = split_wide_splats(self.scene, self.cameras, marks, cap, self.raster, self.mask, drawn)
         self.hooks.check_cancel()
         if split.added == 0:
             return

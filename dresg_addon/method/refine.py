@@ -95,6 +95,7 @@ def split_wide_splats(
     max_added: int,
     settings: RasterSettings | None = None,
     only: np.ndarray | None = None,  # [N] bool: the splats that may be split (a selection); None: any
+    blend_weights: Sequence[torch.Tensor] | None = None,  # per camera [N], when its render was made (screen_axes)
 ) -> SplitResult:
     """Split the splats the ``cameras`` see wider than ``stroke_sigma`` into children at most that wide (render
     kept; see the module notes).
@@ -111,7 +112,7 @@ def split_wide_splats(
     if not cameras:
         raise ConfigError("splitting wide splats needs at least one camera")
     n = len(scene)
-    axes_px, view_weights, drawn = screen_axes(scene, cameras, settings)  # [N, 3], [V, N], [N]
+    axes_px, view_weights, drawn = screen_axes(scene, cameras, settings, blend_weights)  # [N, 3], [V, N], [N]
     weight = view_weights.sum(0, dtype=np.float64)
     order = np.argsort(-axes_px, axis=1, kind="stable")  # axes, longest first
     long_axes = order[:, :2]
@@ -156,28 +157,38 @@ def split_wide_splats(
 
 
 def screen_axes(
-    scene: GaussianScene, cameras: Sequence[Camera], settings: RasterSettings | None = None
+    scene: GaussianScene,
+    cameras: Sequence[Camera],
+    settings: RasterSettings | None = None,
+    blend_weights: Sequence[torch.Tensor] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per splat: [N, 3] its screen sigma along each of its three axes (pixels), the blend-weighted RMS over the
     views that draw it; [V, N] float32 its blend weight in each view; [N] the largest over the views of its blend
     weight over its footprint's area 2 pi sqrt(det Sigma_2D) (about its opacity where nothing hides it, less
-    where something in front does). Zeros for the splats no view draws."""
+    where something in front does). Zeros for the splats no view draws. ``blend_weights``: each camera's [N] blend
+    weights when its render was already made (the column sums of its colour map); else each camera is rendered."""
     settings = settings or RasterSettings()
     means, quats, log_scales, logits = geometry_tensors(scene)
     n = len(scene)
+    if blend_weights is not None and len(blend_weights) != len(cameras):
+        raise ValueError(f"screen_axes: {len(blend_weights)} views' blend weights for {len(cameras)} cameras")
     sum_w = torch.zeros(n, dtype=torch.float64)
     view_weights = torch.zeros(len(cameras), n)
     sum_sq = torch.zeros(n, 3, dtype=torch.float64)
     drawn = torch.zeros(n, dtype=torch.float64)
-    covariances = scene_covariances(scene)  # made once for all the views
+    covariances = scene_covariances(scene) if blend_weights is None else None  # made once for all the views
     for v, camera in enumerate(cameras):
-        with torch.no_grad():
-            out = render(
-                means, quats, log_scales, logits, torch.zeros_like(means), camera, settings, "all", covariances=covariances
-            )
-        view_weights[v] = out.visibility.float()
-        index = torch.nonzero(out.visibility > 0).squeeze(-1)
-        w = out.visibility[index].double()
+        if blend_weights is None:
+            with torch.no_grad():
+                zeros = torch.zeros_like(means)
+                visibility = render(
+                    means, quats, log_scales, logits, zeros, camera, settings, "all", covariances=covariances
+                ).visibility
+        else:
+            visibility = blend_weights[v].reshape(n)
+        view_weights[v] = visibility.float()
+        index = torch.nonzero(visibility > 0).squeeze(-1)
+        w = visibility[index].double()
         columns = _screen_columns(means[index], quats[index], log_scales[index], camera)  # [M, 3, 2]
         sq = columns.square().sum(-1)  # [M, 3]
         cov = torch.einsum("mia,mib->mab", columns, columns) + LOW_PASS * torch.eye(2, dtype=torch.float64)
