@@ -593,6 +593,7 @@ class Stylization:
         """Sec. 4.3: multi-view fitting of the seen Gaussians to the targets (Eqs. 16-20); solved to its bounded
         least-squares optimum with geometry frozen, else the paper's Adam steps."""
         n = stage.index
+        self.medium.at_stage(self.backend.full_detail(stage))
         self.work.closure = self._fit(targets, n, "fit", f"stage {n}, fit step")
         self.work.fitted_seconds = time.perf_counter() - self.work.started
         feedback = "style distance, re-encoding the fitted views" if self.plan.ablation.feedback else "style distance"

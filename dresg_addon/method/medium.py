@@ -208,6 +208,9 @@ class Medium:
         """Each splat's colour from the views' targets and their joint fit ``joint`` [N, 3] (color_solve's terms)."""
         raise NotImplementedError
 
+    def at_stage(self, full_detail: bool) -> None:
+        """Told before each stage's fit whether the stage proposes at the backend's full detail."""
+
     def footprint_note(self, footprint: float | None, entry, config, fit_scale: float = 1.0) -> str | None:
         """One line for the user when the splats are wider than the marks, else None. ``footprint`` is
         ``fitting.splat_footprint`` (pixels at the fit size), ``fit_scale`` fit pixels per proposal pixel; a backend
@@ -255,10 +258,16 @@ class Paint(Medium):
 
     def __init__(self, best_views: float = 0.0):
         self.best_views = best_views
+        self.coarse_best_views = True
+        self.this_stage = True  # whether this stage takes the best views
 
     def settle(self, config, plan, entry, say):
         self.best_views = plan.best_views
+        self.coarse_best_views = plan.best_views_coarse
         return replace(config, medium=self.name), plan
+
+    def at_stage(self, full_detail: bool) -> None:
+        self.this_stage = full_detail or self.coarse_best_views
 
     def guides(self, run):
         return _ReprojectedGuides(run, self.guide_weight) if run.guided() else ViewGuides()
@@ -266,7 +275,7 @@ class Paint(Medium):
     def pick_colors(self, views, targets, joint, settings, each_view=None, painted=None):
         from .color_solve import best_view_colors
 
-        if self.best_views <= 0.0:
+        if self.best_views <= 0.0 or not self.this_stage:
             return joint
         return best_view_colors(views, targets, joint, settings, self.best_views, each_view)
 
