@@ -167,3 +167,22 @@ def test_an_ink_run_says_so_and_puts_every_splat_on_the_drawings_ramp():
     paint = TINY.with_(medium="paint", post_steps=0)
     painted = stylize(scene, ring_cameras(3), style, paint.config, plan=paint.plan)
     assert painted.log[0]["medium"] == "paint"
+
+
+def test_paint_takes_the_joint_fit_on_the_coarse_stages_when_the_plan_says_so(monkeypatch):
+    from dresg_addon.method import color_solve
+    from dresg_addon.method.config import preset_run
+    from dresg_addon.method.medium import Paint
+
+    best = torch.zeros(5, 3)
+    monkeypatch.setattr(color_solve, "best_view_colors", lambda *args: best)
+    paint = Paint()
+    paint.settle(*preset_run("standard"), None, print)
+    joint = torch.rand(5, 3)
+    paint.at_stage(full_detail=False)
+    assert paint.pick_colors(None, [], joint, None) is joint
+    paint.at_stage(full_detail=True)
+    assert paint.pick_colors(None, [], joint, None) is best
+    paint.settle(*preset_run("standard", best_views_coarse=True), None, print)
+    paint.at_stage(full_detail=False)
+    assert paint.pick_colors(None, [], joint, None) is best

@@ -123,7 +123,7 @@ def prior_costs(config, plan, entry) -> dict[str, float]:
     if config.optimize_geometry:
         costs["fit"] = 0.8 * max(plan.fit_steps, 1)
         costs["post"] = 0.8 * max(plan.post_steps, 1)
-    elif plan.best_views > 0:
+    elif plan.best_views > 0 and plan.best_views_coarse:  # else each stage's fit is priced by its own cost
         costs["fit"] *= BEST_VIEWS_FIT_COST
         costs["post"] *= BEST_VIEWS_FIT_COST
     if entry.proposal_cost > 0:
@@ -161,7 +161,8 @@ class ProgressModel:
         self.stages, self.post, self.first_stage = 0, False, 1
         self.counts = {"select": 1, "views": 1}  # candidate cameras, active views
         self.costs = dict(PRIOR_COSTS)
-        self.stage_costs: dict[int, float] = {}  # stage -> its proposals' relative cost (ProposalBackend.relative_cost)
+        # phase -> stage -> relative cost: the proposals' (ProposalBackend.relative_cost), the fits' (1: the joint solve)
+        self.stage_costs: dict[str, dict[int, float]] = {}
         self.expected_last: int | None = None  # the stage the run is expected to end after (None: the last)
         self.marks_stages: set[int] = set()  # the stages that carry the marks (a part of their own)
         self.timed: dict[tuple[str, int], float] = {}  # (phase, stage) -> seconds, for the parts that ended
@@ -177,10 +178,11 @@ class ProgressModel:
         if costs is not None:
             self.costs = {**PRIOR_COSTS, **costs}
 
-    def set_stage_costs(self, costs: Sequence[float]) -> None:
-        """Each stage's proposals' relative cost, stage 1 first: a stage not run yet is priced by it, so the fine
-        stages of a coarse-to-fine backend are not priced as its coarse ones."""
-        self.stage_costs = {n: float(c) for n, c in enumerate(costs, 1) if math.isfinite(c) and c > 0}
+    def set_stage_costs(self, costs: Sequence[float], phase: str = "proposal") -> None:
+        """Each stage's relative cost of ``phase``, stage 1 first: a stage not run yet is priced by it, so the fine
+        stages of a coarse-to-fine backend are not priced as its coarse ones, nor a fit with the best views as one
+        without. "proposal": the backend's units (only their ratios count); "fit": 1 for the joint solve."""
+        self.stage_costs[phase] = {n: float(c) for n, c in enumerate(costs, 1) if math.isfinite(c) and c > 0}
 
     def set_marks_stages(self, stages) -> None:
         """The stages whose targets take the splats' carried marks: each has a "marks" part."""
@@ -255,12 +257,15 @@ class ProgressModel:
         """Expected seconds of the part (phase, stage) (class docstring)."""
         if (phase, stage) in self.timed:
             return self.timed[(phase, stage)]
-        if phase == "proposal" and stage in self.stage_costs:
-            cost = self.stage_costs[stage]
-            ran = [(s, t) for (kind, s), t in self.timed.items() if kind == "proposal" and s in self.stage_costs]
+        costs = self.stage_costs.get(phase, {})
+        if stage in costs:
+            cost = costs[stage]
+            ran = [(s, t) for (kind, s), t in self.timed.items() if kind == phase and s in costs]
             if ran:  # seconds per unit of cost, from the stages that ran
-                return sum(t for _, t in ran) / sum(self.stage_costs[s] for s, _ in ran) * cost
-            return self._unmeasured(phase) * cost * len(self.stage_costs) / sum(self.stage_costs.values())
+                return sum(t for _, t in ran) / sum(costs[s] for s, _ in ran) * cost
+            if phase == "proposal":  # the backend's units: their mean is the prior's
+                cost *= len(costs) / sum(costs.values())
+            return self._unmeasured(phase) * cost
         seconds = self._measured(phase)
         if seconds is not None:
             return seconds

@@ -56,7 +56,8 @@ class Plan:
     # Each splat from the views that draw it most, weights (d / max d)^p (color_solve.best_view_colors); 0: the
     # joint fit (docs/decisions/005-best-views.md).
     best_views: float = 0.0
-    # False: only the stages at the backend's full detail take the best views, the coarse ones the joint fit.
+    # False: only the stages at the backend's full detail take the best views, the coarse ones the joint fit
+    # (docs/decisions/005-best-views.md).
     best_views_coarse: bool = True
     # Splats the active views draw wider than the strokes are split first, adding at most this share of the scene
     # (method/refine.py); 0: the scene keeps its splats.
@@ -213,6 +214,7 @@ PLANS: dict[str, Plan] = {
         post_steps=0,
         early_stop=0.01,
         best_views=4.0,
+        best_views_coarse=False,
         carry_marks=True,
         split_cap=0.35,
         split_width=0.3,
