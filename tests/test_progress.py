@@ -230,21 +230,21 @@ def test_stages_not_run_yet_are_priced_by_their_own_cost():
 
 
 def test_a_fit_with_the_best_views_is_priced_above_a_joint_one_before_it_runs():
-    """standard's coarse stages take the joint fit, its full-detail ones the best views (BEST_VIEWS_FIT_COST): once
+    """standard's coarse stages take the joint fit, its full-detail ones the best views (BEST_VIEWS_STAGE_FIT_COST): once
     two joint fits took 3 s each, a best-views fit is expected to take 3 x that cost; before any fit, the joint
     fit's prior x its cost."""
-    from dresg_addon.method.bookkeeping import BEST_VIEWS_FIT_COST, PRIOR_COSTS
+    from dresg_addon.method.bookkeeping import BEST_VIEWS_STAGE_FIT_COST, PRIOR_COSTS
 
     model = ProgressModel(Clock())
     model.plan(3, False)
     model.set_counts(cameras=0, views=2)
-    model.set_stage_costs([1.0, 1.0, BEST_VIEWS_FIT_COST], "fit")
+    model.set_stage_costs([1.0, 1.0, BEST_VIEWS_STAGE_FIT_COST], "fit")
     model.timed[("select", 0)] = 2.0 * PRIOR_COSTS["select"]  # two units' priors take 2 s: a second a unit
-    assert model.weight("fit", 3) == pytest.approx(BEST_VIEWS_FIT_COST * model.weight("fit", 1))
+    assert model.weight("fit", 3) == pytest.approx(BEST_VIEWS_STAGE_FIT_COST * model.weight("fit", 1))
     assert model.weight("fit", 1) == pytest.approx(2 * PRIOR_COSTS["fit"])
     for stage in (1, 2):
         model.timed[("fit", stage)] = 3.0
-    assert model.weight("fit", 3) == pytest.approx(3.0 * BEST_VIEWS_FIT_COST)
+    assert model.weight("fit", 3) == pytest.approx(3.0 * BEST_VIEWS_STAGE_FIT_COST)
     assert model.weight("proposal", 3) == model.weight("proposal", 1)  # the proposals' costs are their own
 
 

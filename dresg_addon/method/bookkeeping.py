@@ -113,6 +113,10 @@ PRICED_LIKE = {"post": "fit"}
 # A solved fit followed by each view solved alone (the best views) against the joint solve alone: the demo scene,
 # preview, 8 views, 3 stages: 5.0 s against 1.7 s.
 BEST_VIEWS_FIT_COST = 2.9
+# A full-detail stage's fit with the best views against a coarse stage's joint fit, when only the former take them
+# (Plan.best_views_coarse False): the bonsai split into 8 (2.18M splats), standard, from the time left its runs
+# estimated at the last stage with this at 1 (0.79 of the truth) and at 2.9 (1.58).
+BEST_VIEWS_STAGE_FIT_COST = 1.5
 
 
 def prior_costs(config, plan, entry) -> dict[str, float]:
@@ -161,7 +165,7 @@ class ProgressModel:
         self.stages, self.post, self.first_stage = 0, False, 1
         self.counts = {"select": 1, "views": 1}  # candidate cameras, active views
         self.costs = dict(PRIOR_COSTS)
-        # phase -> stage -> relative cost: the proposals' (ProposalBackend.relative_cost), the fits' (1: the joint solve)
+        # phase -> stage -> relative cost: the proposals' (ProposalBackend.relative_cost), the fits' (1: a coarse stage's joint solve)
         self.stage_costs: dict[str, dict[int, float]] = {}
         self.expected_last: int | None = None  # the stage the run is expected to end after (None: the last)
         self.marks_stages: set[int] = set()  # the stages that carry the marks (a part of their own)

@@ -40,7 +40,7 @@ from ..util.errors import CameraError, ConfigError, NumericalError
 from ..util.machine import peak_rss_mb, release_free_memory
 from . import views as view_selection
 from .backends import backend, light_note
-from .bookkeeping import BEST_VIEWS_FIT_COST, Progress, RunHooks, RunRecord, StageUpdate, prior_costs, run_id
+from .bookkeeping import BEST_VIEWS_STAGE_FIT_COST, Progress, RunHooks, RunRecord, StageUpdate, prior_costs, run_id
 from .color_solve import ViewsInTurn
 from .color_transfer import covariance_color_transform, coverage_weight, luminance
 from .config import Plan, StylizeConfig, check_run_settings
@@ -461,7 +461,7 @@ class Stylization:
         self.backend = self.entry.make(self.config, self.plan, self.brightness, self.device)
         self.hooks.model.set_stage_costs([self.backend.relative_cost(s, *self.size) for s in self.stages])
         if not self.config.optimize_geometry and self.plan.best_views > 0 and not self.plan.best_views_coarse:
-            fits = [BEST_VIEWS_FIT_COST if self.backend.full_detail(s) else 1.0 for s in self.stages]
+            fits = [BEST_VIEWS_STAGE_FIT_COST if self.backend.full_detail(s) else 1.0 for s in self.stages]
             self.hooks.model.set_stage_costs(fits, "fit")
         self.hooks.model.set_marks_stages([s.index for s in self.stages if self.marks_wanted(s)])
         if self.plan.early_stop > 0:  # the first stage finish_stage may stop after
