@@ -165,7 +165,8 @@ class ProgressModel:
         self.stages, self.post, self.first_stage = 0, False, 1
         self.counts = {"select": 1, "views": 1}  # candidate cameras, active views
         self.costs = dict(PRIOR_COSTS)
-        # phase -> stage -> relative cost: the proposals' (ProposalBackend.relative_cost), the fits' (1: a coarse stage's joint solve)
+        # phase -> stage -> relative cost: the proposals' (ProposalBackend.relative_cost), the fits' (1: a coarse
+        # stage's joint solve)
         self.stage_costs: dict[str, dict[int, float]] = {}
         self.expected_last: int | None = None  # the stage the run is expected to end after (None: the last)
         self.marks_stages: set[int] = set()  # the stages that carry the marks (a part of their own)
