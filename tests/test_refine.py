@@ -105,7 +105,9 @@ def test_children_keep_the_parents_mean_and_covariance():
 def test_parent_index_and_carried_properties():
     scene = wide_scene()
     scene.extras["label"] = np.arange(len(scene), dtype=np.float32)
-    result = split_wide_splats(scene, cameras(), 3.0, 10_000)
+    released = []
+    result = split_wide_splats(scene, cameras(), 3.0, 10_000, before_children=lambda: released.append(len(scene)))
+    assert released == [len(scene)]  # once, before the children: the caller frees the stale renders there
     out, parent = result.scene, result.parent_index
     n = len(scene)
     assert parent.dtype == np.int64 and len(parent) == len(out) == n + result.added
@@ -129,7 +131,7 @@ def test_a_fine_scene_does_not_grow():
     rng = np.random.default_rng(1)
     means, scales, quats, opacities, _ = fine_backdrop(rng, count=600, z=0.0)
     scene = scene_of(means, scales, quats, opacities, np.tile([0.4, 0.5, 0.6], (600, 1)))
-    result = split_wide_splats(scene, cameras(), 3.0, 10_000)
+    result = split_wide_splats(scene, cameras(), 3.0, 10_000, before_children=lambda: pytest.fail("nothing split"))
     assert result.added == 0 and result.split == 0 and result.scene is scene
     assert np.array_equal(result.parent_index, np.arange(len(scene)))
     assert result.summary == "no splat is wider than the marks"

@@ -317,13 +317,16 @@ class Stylization:
         drawn = None
         if self.rendered is not None:  # the selection's renders: each splat's blend weight is its map's column sum
             drawn = [r.map.rmatvec(torch.ones(r.map.shape[0], 1))[:, 0] for r in self.rendered]
-        split = split_wide_splats(self.scene, self.cameras, marks, cap, self.raster, self.mask, drawn)
+
+        def release_renders() -> None:  # stale once splats split: freed before the split scene is built beside them
+            self.rendered = None
+
+        split = split_wide_splats(self.scene, self.cameras, marks, cap, self.raster, self.mask, drawn, release_renders)
         self.hooks.check_cancel()
         if split.added == 0:
             return
         self.hooks.note(split.summary)
         self.scene, self.parents = split.scene, split.parent_index
-        self.rendered = None  # the selection rendered the scene before the split
         if self.mask is not None:  # a selected splat's children are selected
             self.mask = self.mask[self.parents]
 
