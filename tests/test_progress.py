@@ -248,6 +248,23 @@ def test_a_fit_with_the_best_views_is_priced_above_a_joint_one_before_it_runs():
     assert model.weight("proposal", 3) == model.weight("proposal", 1)  # the proposals' costs are their own
 
 
+def test_later_fits_and_a_stages_marks_are_priced_from_the_first_fit_by_their_costs():
+    """The first solve costs FIRST_FIT_COST of a later coarse one (it starts from the capture's colours): once it took
+    1.4 x 10 s, a coarse fit is expected to take 10 s, a best-views one 15 s, and a stage's marks, priced like a
+    coarse fit (not the mean of the fits that ran), 10 s x their prior over the fit's."""
+    from dresg_addon.method.bookkeeping import BEST_VIEWS_STAGE_FIT_COST, FIRST_FIT_COST, PRIOR_COSTS
+
+    model = ProgressModel(Clock())
+    model.plan(3, False)
+    model.set_counts(cameras=0, views=2)
+    model.set_stage_costs([FIRST_FIT_COST, 1.0, BEST_VIEWS_STAGE_FIT_COST], "fit")
+    model.set_marks_stages([3])
+    model.timed[("fit", 1)] = FIRST_FIT_COST * 10.0
+    assert model.weight("fit", 2) == pytest.approx(10.0)
+    assert model.weight("fit", 3) == pytest.approx(10.0 * BEST_VIEWS_STAGE_FIT_COST)
+    assert model.weight("marks", 3) == pytest.approx(10.0 * PRIOR_COSTS["marks"] / PRIOR_COSTS["fit"])
+
+
 def test_the_synth_backend_prices_its_full_resolution_stages_above_its_coarse_ones():
     from dresg_addon.method.proposal.synth import SynthBackend
     from dresg_addon.method.schedule import stage_timesteps

@@ -103,13 +103,13 @@ STAGE_PHASES = ("proposal", "marks", "fit", "feedback")  # "marks" only in the s
 # coverage render of one camera: the bar's shares until then. From the bonsai x Starry Night, preview, 16 orbit
 # cameras, 8 active views, 2 cores: selection 0.8 s a camera, set-up 2.1 s a view (finding the seen splats, the
 # colour fit's matrices, the base renders' style distance), a proposal 0.7 s, a solved fit 0.7 s, the feedback
-# (style distance, re-encoding) 0.3 s; a stage's carried marks (the views' votes, their paintings) 0.6 of standard's
-# solved fit with the best views on the bonsai x 8 (2.18M splats), the only stage that carries them mostly the last
-# one run. :func:`prior_costs` scales them for Adam fits and sd15 proposals.
-PRIOR_COSTS = {"select": 1.0, "setup": 2.7, "proposal": 0.9, "marks": 1.6, "fit": 0.9, "feedback": 0.35, "post": 0.9}
+# (style distance, re-encoding) 0.3 s; a stage's carried marks (the views' votes, their paintings) about a coarse
+# stage's joint solve (1.0 of it on the bonsai x 8, 2.18M splats; 1.6 on the demo scene). :func:`prior_costs`
+# scales them for Adam fits and sd15 proposals.
+PRIOR_COSTS = {"select": 1.0, "setup": 2.7, "proposal": 0.9, "marks": 1.0, "fit": 0.9, "feedback": 0.35, "post": 0.9}
 # A phase not yet timed is priced like one that has been, in the ratio of their prior costs: the post stage's fit
-# like a stage's fit.
-PRICED_LIKE = {"post": "fit"}
+# and a stage's marks (both over the fit's matrices) like a stage's fit.
+PRICED_LIKE = {"post": "fit", "marks": "fit"}
 # A solved fit followed by each view solved alone (the best views) against the joint solve alone: the demo scene,
 # preview, 8 views, 3 stages: 5.0 s against 1.7 s.
 BEST_VIEWS_FIT_COST = 2.9
@@ -117,6 +117,10 @@ BEST_VIEWS_FIT_COST = 2.9
 # (Plan.best_views_coarse False): the bonsai split into 8 (2.18M splats), standard, from the time left its runs
 # estimated at the last stage with this at 1 (0.79 of the truth) and at 2.9 (1.58).
 BEST_VIEWS_STAGE_FIT_COST = 1.5
+# The first stage's solve against a later coarse stage's: it starts from the capture's colours, the later ones from
+# the stage before's, and takes more rounds (the bonsai x 8: 16.0 s and 40 rounds against 10.1-11.5 s and 32; the
+# demo: 1.9 s against 1.2-1.8 s). Priced at 1 it made the bonsai x 8's estimate at stage 2 1.39x the truth.
+FIRST_FIT_COST = 1.4
 
 
 def prior_costs(config, plan, entry) -> dict[str, float]:
@@ -141,8 +145,9 @@ class ProgressModel:
 
     The run is a row of parts: view selection, set-up, then per stage its proposals, fit and feedback, then the
     post stage. A part weighs the seconds it is expected to take: what it took, once it has ended; else the mean
-    of the parts of its kind that have ended (or of the kind it is priced like, :data:`PRICED_LIKE`); else its
-    prior cost (:data:`PRIOR_COSTS` x its views or cameras) x the seconds per unit of cost the ended parts took.
+    of the parts of its kind that have ended (or of a part at relative cost 1 of the kind it is priced like,
+    :data:`PRICED_LIKE`); else its prior cost (:data:`PRIOR_COSTS` x its views or cameras) x the seconds per unit
+    of cost the ended parts took.
     The raw fraction is the weight of the parts before the current one plus step / steps of the current one's,
     over the weight of them all.
 
@@ -254,9 +259,15 @@ class ProgressModel:
         if seconds is not None:
             return seconds
         like = PRICED_LIKE.get(phase)
-        if like is not None and (seconds := self._kind_seconds(like)) is not None:
+        if like is not None and (seconds := self._unit_seconds(like)) is not None:
             return seconds * self._units(phase) / max(self._units(like), 1e-12)
         return None
+
+    def _unit_seconds(self, phase: str) -> float | None:
+        """Seconds of a part of ``phase`` at relative cost 1 (a coarse stage's joint fit), from the parts that ended."""
+        costs = self.stage_costs.get(phase, {})
+        ran = [(costs.get(stage, 1.0), t) for (kind, stage), t in self.timed.items() if kind == phase]
+        return sum(t for _, t in ran) / sum(c for c, _ in ran) if ran else None
 
     def weight(self, phase: str, stage: int) -> float:
         """Expected seconds of the part (phase, stage) (class docstring)."""

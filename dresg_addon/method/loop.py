@@ -40,7 +40,16 @@ from ..util.errors import CameraError, ConfigError, NumericalError
 from ..util.machine import peak_rss_mb, release_free_memory
 from . import views as view_selection
 from .backends import backend, light_note
-from .bookkeeping import BEST_VIEWS_STAGE_FIT_COST, Progress, RunHooks, RunRecord, StageUpdate, prior_costs, run_id
+from .bookkeeping import (
+    BEST_VIEWS_STAGE_FIT_COST,
+    FIRST_FIT_COST,
+    Progress,
+    RunHooks,
+    RunRecord,
+    StageUpdate,
+    prior_costs,
+    run_id,
+)
 from .color_solve import ViewsInTurn
 from .color_transfer import covariance_color_transform, coverage_weight, luminance
 from .config import Plan, StylizeConfig, check_run_settings
@@ -463,8 +472,13 @@ class Stylization:
         self.brightness = scene_brightness(self.contents, self.coverages)
         self.backend = self.entry.make(self.config, self.plan, self.brightness, self.device)
         self.hooks.model.set_stage_costs([self.backend.relative_cost(s, *self.size) for s in self.stages])
-        if not self.config.optimize_geometry and self.plan.best_views > 0 and not self.plan.best_views_coarse:
-            fits = [BEST_VIEWS_STAGE_FIT_COST if self.backend.full_detail(s) else 1.0 for s in self.stages]
+        if not self.config.optimize_geometry:  # solved fits: the first takes more rounds, the best views more solves
+            best_views_fine = self.plan.best_views > 0 and not self.plan.best_views_coarse
+            fits = [
+                BEST_VIEWS_STAGE_FIT_COST if best_views_fine and self.backend.full_detail(s) else 1.0
+                for s in self.stages
+            ]
+            fits[0] *= FIRST_FIT_COST
             self.hooks.model.set_stage_costs(fits, "fit")
         self.hooks.model.set_marks_stages([s.index for s in self.stages if self.marks_wanted(s)])
         if self.plan.early_stop > 0:  # the first stage finish_stage may stop after
