@@ -205,18 +205,27 @@ def test_deterministic():
         assert np.array_equal(getattr(a.scene, field), getattr(b.scene, field))
 
 
-def test_blend_weights_from_the_views_colour_maps_measure_as_the_splits_own_renders():
+def test_blend_weights_from_the_views_colour_maps_or_the_selections_renders_measure_as_the_splits_own_renders():
     from dresg_addon.method.refine import screen_axes
+    from dresg_addon.method.views import visibility_matrix
     from dresg_addon.raster import ColorOnlyRenderer, RasterSettings, geometry_tensors
 
     scene, views = wide_scene(), cameras()
     geometry = geometry_tensors(scene)
     maps = [ColorOnlyRenderer(*geometry, camera, RasterSettings()).map for camera in views]
-    given = [m.rmatvec(torch.ones(m.shape[0], 1))[:, 0] for m in maps]
-    for measured, rendered in zip(screen_axes(scene, views, blend_weights=given), screen_axes(scene, views)):
-        np.testing.assert_allclose(measured, rendered, rtol=1e-5, atol=1e-6)
-    first = split_wide_splats(scene, views, 4.5, 10_000, blend_weights=given)
-    np.testing.assert_array_equal(first.parent_index, split_wide_splats(scene, views, 4.5, 10_000).parent_index)
+    from_maps = [m.rmatvec(torch.ones(m.shape[0], 1))[:, 0] for m in maps]
+    from_selection = []  # beside its depth-consistent visibility, every sample's weight
+    visibility = visibility_matrix(scene, views, RasterSettings(), blend_weights=from_selection).to_dense()
+    assert all(bool((w >= v).all()) for w, v in zip(from_selection, visibility))  # a subset of the samples
+    assert any(bool((w > v + 1e-3).any()) for w, v in zip(from_selection, visibility))  # the hidden ones too
+    own = split_wide_splats(scene, views, 4.5, 10_000).parent_index
+    for given in (from_maps, from_selection):
+        for measured, rendered in zip(screen_axes(scene, views, blend_weights=given), screen_axes(scene, views)):
+            np.testing.assert_allclose(measured, rendered, rtol=1e-5, atol=1e-6)
+        np.testing.assert_array_equal(
+            split_wide_splats(scene, views, 4.5, 10_000, blend_weights=given).parent_index, own
+        )
+    given = from_maps
     with pytest.raises(ValueError, match="2 views' blend weights for 3 cameras"):
         screen_axes(scene, views, blend_weights=given[:2])
 
@@ -296,3 +305,33 @@ def test_without_a_cap_the_scene_keeps_its_splats_and_only_standard_splits():
     result = _run_on_wide_scene(split_cap=0.0)
     assert result.parents is None and len(result.scene) == len(wide_scene())
     assert [name for name, plan in PLANS.items() if plan.split_cap > 0] == ["standard"]
+
+
+def test_a_splitting_run_measures_the_split_in_the_selections_renders_and_keeps_no_stale_maps(monkeypatch):
+    """The selection's renders give the split its blend weights (no render of its own), and keep no colour maps for
+    the fit: the split makes them stale. A run that does not split keeps the maps for its fit instead."""
+    from dresg_addon.method import loop
+
+    asked, measured = [], []
+    select, split = loop.view_selection.select_active_views, loop.split_wide_splats
+
+    def selecting(*args, **kwargs):
+        asked.append((kwargs["renderers"], kwargs["blend_weights"]))
+        return select(*args, **kwargs)
+
+    def splitting(scene, cameras, stroke_sigma, cap, settings, only, drawn, *rest):
+        measured.append(drawn)
+        return split(scene, cameras, stroke_sigma, cap, settings, only, drawn, *rest)
+
+    monkeypatch.setattr(loop.view_selection, "select_active_views", selecting)
+    monkeypatch.setattr(loop, "split_wide_splats", splitting)
+    assert len(_run_on_wide_scene().scene) > len(wide_scene())
+    ((renderers, weights),), (drawn,) = asked, measured
+    assert (
+        renderers is None and len(weights) == len(cameras()) and all(w.shape == (len(wide_scene()),) for w in weights)
+    )
+    assert drawn is not None and len(drawn) == len(cameras())
+    asked.clear()
+    _run_on_wide_scene(split_cap=0.0)
+    ((renderers, weights),) = asked
+    assert weights is None and len(renderers) == len(cameras())

@@ -277,6 +277,7 @@ class Stylization:
         """Sec. 4.3: the active views by capped coverage (Eqs. 13-15), or the given ones."""
         hooks, nan = self.hooks, float("nan")
         self.rendered: list | None = None  # the active views' colour-only renderers, when the selection made them
+        self.blend_weights: list | None = None  # the active views' blend weights, when the selection kept them
         if views is None:
             hooks.model.set_counts(cameras=len(cameras), views=min(len(cameras), self.config.max_views or len(cameras)))
 
@@ -285,9 +286,13 @@ class Stylization:
 
             each_camera(0, len(cameras))
             # When every camera may be active, the fit's colour-only maps come from the selection's renders (the
-            # most the fit holds anyway); with more cameras than views, the chosen ones are rendered again.
+            # most the fit holds anyway); with more cameras than views, the chosen ones are rendered again. A run
+            # that splits wide splats keeps their blend weights instead: the split makes the maps stale, and
+            # building them costs the 2M-splat bonsai 1.3 s a view more than the weights (refine).
             cap = self.config.max_views or len(cameras)
-            renderers = [] if not self.config.optimize_geometry and len(cameras) <= cap else None
+            keep = not self.config.optimize_geometry and len(cameras) <= cap
+            renderers = [] if keep and not self.splits() else None
+            weights = [] if self.splits() else None
             self.selection = view_selection.select_active_views(
                 self.scene,
                 cameras,
@@ -297,9 +302,12 @@ class Stylization:
                 mask=self.mask,
                 near=self.raster.near,
                 renderers=renderers,
+                blend_weights=weights,
             )
             if renderers is not None:
                 self.rendered = [renderers[v] for v in self.selection.indices]
+            if weights is not None:
+                self.blend_weights = [weights[v] for v in self.selection.indices]
         else:
             hooks.model.set_counts(cameras=0, views=len(views))
             bad = [v for v in views if not 0 <= v < len(cameras)]
@@ -318,13 +326,13 @@ class Stylization:
         the backend's strokes are split into children that render as they did, at most the plan's ``split_cap`` of
         the scene more; the selection and the input's colours carry over to the children."""
         self.parents = None
-        cap = int(self.plan.split_cap * len(self.scene))
-        if cap <= 0 or self.entry.stroke_sigma is None:
+        drawn, self.blend_weights = self.blend_weights, None
+        if not self.splits():
             return
+        cap = int(self.plan.split_cap * len(self.scene))
         self.hooks.report(0, 0, 1, "select", float("nan"), "finding the splats wider than the marks")
         marks = self.entry.stroke_sigma(self.config.stroke_size) * self.fit_scale() * self.plan.split_width
-        drawn = None
-        if self.rendered is not None:  # the selection's renders: each splat's blend weight is its map's column sum
+        if drawn is None and self.rendered is not None:  # each splat's blend weight is its map's column sum
             drawn = [r.map.rmatvec(torch.ones(r.map.shape[0], 1))[:, 0] for r in self.rendered]
 
         def release_renders() -> None:  # stale once splats split: freed before the split scene is built beside them
@@ -338,6 +346,11 @@ class Stylization:
         self.scene, self.parents = split.scene, split.parent_index
         if self.mask is not None:  # a selected splat's children are selected
             self.mask = self.mask[self.parents]
+
+    def splits(self) -> bool:
+        """Whether the run splits the splats wider than the marks (:meth:`refine`): the plan allows some and the
+        backend has a stroke scale."""
+        return int(self.plan.split_cap * len(self.scene)) > 0 and self.entry.stroke_sigma is not None
 
     def fit_scale(self) -> float:
         """Fit pixels per proposal pixel, averaged over the active views."""

@@ -273,13 +273,16 @@ def visibility_matrix(
     cancel: threading.Event | None = None,
     device: str | torch.device = "cpu",
     renderers: list | None = None,
+    blend_weights: list | None = None,
 ) -> torch.Tensor:
     """w [V, N] (sparse CSR, int32 indices, on the CPU): each Gaussian's depth-consistent visible weight
     sum_p T alpha in each view (Sec. 4.3), rendered on ``device``.
 
     ``progress(done, total)`` is called once per camera, after its render (done = 1 .. total); setting ``cancel``
     stops with CancelledError. Given a list, ``renderers`` gets each camera's colour-only renderer from the same
-    render (:class:`~dresg_addon.raster.ColorOnlyRenderer`), so that a fit of these views renders none again.
+    render (:class:`~dresg_addon.raster.ColorOnlyRenderer`), so that a fit of these views renders none again;
+    ``blend_weights`` gets each camera's [N] float32 blend weights (every sample's T alpha, not only the
+    depth-consistent ones: what ``refine.screen_axes`` measures), so that a split of these views renders none again.
     """
     means, quats, log_scales, logits = (t.to(device) for t in geometry_tensors(scene))
     covariances = splat_covariances(quats, log_scales, torch.float64)
@@ -295,6 +298,8 @@ def visibility_matrix(
             )
         if keep:
             renderers.append(ColorOnlyRenderer(means, quats, log_scales, logits, camera, settings, output=out))
+        if blend_weights is not None:
+            blend_weights.append(out.blend_weights.cpu().float())
         visibility = out.visibility.cpu()
         nz = torch.nonzero(visibility > 0).squeeze(-1)
         cols.append(nz.to(torch.int32))  # a 2M-splat scene's 16 views: 24M entries, 0.2 GB as int32 and float32
@@ -319,6 +324,7 @@ def select_active_views(
     device: str | torch.device = "cpu",  # where the coverage renders run
     near: float | None = None,  # the near plane, for a scene in tiny units (None: the rasterizer's)
     renderers: list | None = None,  # gets every camera's colour-only renderer (visibility_matrix)
+    blend_weights: list | None = None,  # gets every camera's blend weights (visibility_matrix)
 ) -> ActiveViews:
     """Sec. 4.3: greedy capped-coverage selection (Eqs. 13-15) on the rasterizer's visibility weights.
 
@@ -328,9 +334,11 @@ def select_active_views(
     """
     if not cameras:
         raise CameraError("no cameras: add cameras to the scene, give a cameras file, or use orbit cameras")
+    raster = config.raster(near)
     w = visibility_matrix(
-        scene, cameras, config.raster(near), progress=progress, cancel=cancel, device=device, renderers=renderers
-    )
+        scene, cameras, raster, progress=progress, cancel=cancel, device=device, renderers=renderers,
+        blend_weights=blend_weights,
+    )  # fmt: skip
     # Row by row from here: a [V, N] array of a 2M-splat scene, or its coordinates, would be GBs.
     rows, _ = _visibility_rows(w)
     if mask is not None:  # splats outside the selection are seen by no view, as far as coverage goes

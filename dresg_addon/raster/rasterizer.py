@@ -63,6 +63,8 @@ class RenderOutput:
     visibility: torch.Tensor | None  # [N] sum over pixels of T * alpha (no gradient)
     n_pairs: int  # samples composited
     contributions: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # pixel, gaussian, T*alpha
+    # [N] with depth-consistent visibility: every sample's T * alpha, as visibility "all" gives it (no gradient)
+    blend_weights: torch.Tensor | None = None
 
 
 def _row_extents(my, cyy, r2, height):
@@ -266,6 +268,7 @@ class _Plan:
     # Filled by the forward pass:
     n_pairs: int = 0
     visible: torch.Tensor | None = None  # [M] per depth-sorted Gaussian
+    blend: torch.Tensor | None = None  # [M] every sample's weight, beside depth-consistent visibility
     contributions: list = field(default_factory=list)  # (image pixel, Gaussian rank, T * alpha) per band
 
 
@@ -317,10 +320,13 @@ class _Rasterize(torch.autograd.Function):
         pix_depth = torch.where(covered > 0, depth_sum / torch.where(covered > 0, covered, 1.0), 0.0)
         if plan.visibility:
             plan.visible = torch.zeros(mx.numel(), dtype=dtype, device=device)
+        if plan.visibility == "depth_consistent":
+            plan.blend = torch.zeros(mx.numel(), dtype=dtype, device=device)
         for r0, _n_pix, _entries, s, weight in bands:
             if plan.visibility:
                 used = slice(None)
                 if plan.visibility == "depth_consistent":
+                    plan.blend.index_add_(0, s.gauss, weight)
                     d_g, d_p = _take(depth, s.gauss), _take(pix_depth, s.pixel + r0 * width)
                     used = torch.nonzero((d_g - d_p).abs() <= settings.depth_tolerance * d_p).squeeze(-1)
                 plan.visible.index_add_(0, s.gauss[used], weight[used])
@@ -466,10 +472,13 @@ def render(
         fixed, bands, width, height, settings.dtype or out_dtype, settings, visibility, keep_contributions, keep_samples
     )  # fmt: skip
     rgb, t_final, depth_img = _Rasterize.apply(*geometry, *channels, plan)
-    vis_full = None
+    vis_full = blend_full = None
     if visibility:
         vis_full = torch.zeros(n, dtype=out_dtype, device=device)
         vis_full[g_index] = plan.visible.to(out_dtype)
+    if visibility == "depth_consistent":
+        blend_full = torch.zeros(n, dtype=out_dtype, device=device)
+        blend_full[g_index] = plan.blend.to(out_dtype)
     contributions = None
     if keep_contributions and plan.contributions:
         pixel, rank, weight = (torch.cat(parts) for parts in zip(*plan.contributions))
@@ -481,6 +490,7 @@ def render(
         vis_full,
         plan.n_pairs,
         contributions,
+        blend_full,
     )
 
 
