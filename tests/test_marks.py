@@ -345,3 +345,17 @@ def test_strokes_through_the_splats_coordinates_line_up_across_views_where_per_v
 
 def agreement_of_renders(renders, cameras, depths, alphas) -> float:
     return warp_correlation([torch.as_tensor(r.rgb).float() for r in renders], cameras, depths, alphas)
+
+
+def test_a_view_worked_on_a_slice_of_samples_at_a_time_votes_and_paints_the_same(monkeypatch):
+    from dresg_addon.method import marks as module
+
+    marks, source, surfaces, in_t = carried_plane(block=2)
+    field = surfaces.fields[0]
+    splats = marks.owner.numel()
+    whole = vote_view(in_t, (32, 32), field, splats), paint_view(in_t, (32, 32), (32, 32), marks, source, 1, surfaces)
+    monkeypatch.setattr(module, "SAMPLES_AT_ONCE", 37)  # ranges of splats for the vote, slices for the rest
+    sliced = vote_view(in_t, (32, 32), field, splats), paint_view(in_t, (32, 32), (32, 32), marks, source, 1, surfaces)
+    assert torch.equal(whole[0].agreed, sliced[0].agreed) and whole[0].agreed.gt(0).sum() > 100
+    torch.testing.assert_close(whole[0].coordinates, sliced[0].coordinates, rtol=0, atol=1e-9)
+    assert torch.equal(whole[1][0], sliced[1][0]) and torch.equal(whole[1][1], sliced[1][1])

@@ -37,6 +37,7 @@ from .proposal.synth import PaintingField, low_pass
 
 COVERED = 0.5  # alpha above which a pixel's fine band comes from the splats' marks
 OWNER_SHARE = 0.5  # a splat's marks from the first view whose vote is at least this share of the strongest's
+SAMPLES_AT_ONCE = 2_000_000  # a view's samples worked on at a time (a 2.2M-splat scene's view holds several million)
 
 
 @dataclass
@@ -55,7 +56,29 @@ def vote_view(
     splats: int,
 ) -> ViewVote:
     """Each splat's mode translation into the painting over its pixels in this view, weighted by blend weight, and the
-    painting coordinate of its centre under it."""
+    painting coordinate of its centre under it. Worked on a range of splats at a time (all of a splat's samples in
+    one), so that a dense view's vote holds a fraction of its samples' temporaries."""
+    pixel, splat, weight = contributions
+    shift = torch.zeros(splats, 2, dtype=torch.long)
+    best = torch.zeros(splats, dtype=torch.float64)
+    step = -(-splats // max(1, -(-pixel.numel() // SAMPLES_AT_ONCE)))
+    for start in range(0, splats, step):
+        count = min(step, splats - start)
+        if count == splats:
+            part = contributions
+        else:
+            pick = torch.nonzero((splat >= start) & (splat < start + count))[:, 0]
+            part = (pixel[pick], splat[pick] - start, weight[pick])
+        shift[start : start + count], best[start : start + count] = _mode_translations(part, fit_shape, field, count)
+    centres = splat_centres(contributions, fit_shape, field.rows.shape, splats)
+    voted = best > 0
+    coordinates = centres + torch.where(voted[:, None], shift, 0).to(centres.dtype)
+    return ViewVote(coordinates, torch.where(voted, best, torch.zeros_like(best)).float())
+
+
+def _mode_translations(contributions, fit_shape, field: PaintingField, splats: int):  # -> shift [N, 2], weight [N]
+    """Each splat's most-voted (row, column) translation from its proposal pixels into the painting, and the blend
+    weight that voted for it (0: none of its pixels is covered by the field)."""
     pixel, splat, weight = contributions
     height, width = fit_shape
     rows_p, cols_p = field.rows.shape
@@ -64,39 +87,52 @@ def vote_view(
     flat = y * cols_p + x
     valid = field.valid.reshape(-1)[flat] & (weight > 0)
     source_rows, source_cols = field.source.shape[1:]
-    dy = field.rows.reshape(-1)[flat] - y  # in [-rows_p, source_rows)
-    dx = field.cols.reshape(-1)[flat] - x  # in [-cols_p, source_cols)
     span = source_cols + cols_p + 1
     codes = (source_rows + rows_p + 1) * span
-    key = splat[valid] * codes + (dy[valid] + rows_p) * span + (dx[valid] + cols_p)
+    flat, y, x = flat[valid], y[valid], x[valid]
+    dy = field.rows.reshape(-1)[flat] - y  # in [-rows_p, source_rows)
+    dx = field.cols.reshape(-1)[flat] - x  # in [-cols_p, source_cols)
+    del flat, y, x
+    key = splat[valid] * codes + (dy + rows_p) * span + (dx + cols_p)
+    del dy, dx
     keys, inverse = torch.unique(key, return_inverse=True)
+    del key
     votes = torch.zeros(keys.numel(), dtype=torch.float64).index_add_(0, inverse, weight[valid].double())
+    del inverse
     owner = keys // codes
     best = torch.zeros(splats, dtype=torch.float64).scatter_reduce_(0, owner, votes, "amax", include_self=True)
     winner = votes >= best[owner]
     # Ties go to the smallest key, so the vote does not depend on the order of the pixels.
     chosen = torch.full((splats,), torch.iinfo(torch.long).max, dtype=torch.long)
     chosen.scatter_reduce_(0, owner[winner], keys[winner], "amin", include_self=True)
-    voted = best > 0
-    code = torch.where(voted, chosen % codes, torch.zeros_like(chosen))
-    shift_y, shift_x = code // span - rows_p, code % span - cols_p
-    centres = splat_centres(contributions, fit_shape, (rows_p, cols_p), splats)
-    coordinates = centres + torch.stack([shift_y, shift_x], 1).to(centres.dtype)
-    return ViewVote(coordinates, torch.where(voted, best, torch.zeros_like(best)).float())
+    code = torch.where(best > 0, chosen % codes, torch.zeros_like(chosen))
+    return torch.stack([code // span - rows_p, code % span - cols_p], 1), best
 
 
 def splat_centres(
-    contributions: tuple[torch.Tensor, torch.Tensor, torch.Tensor], fit_shape: tuple[int, int], size, splats: int
+    contributions: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    fit_shape: tuple[int, int],
+    size,
+    splats: int,
+    only: torch.Tensor | None = None,  # [N] bool: the splats to find (None: all)
 ) -> torch.Tensor:  # -> [N, 2] float64 (row, column) in pixels of ``size`` (H, W); 0 for splats the view does not draw
-    """Each splat's centre as the view draws it: the blend-weighted mean of its pixels' positions."""
+    """Each splat's centre as the view draws it: the blend-weighted mean of its pixels' positions (summed a slice of
+    samples at a time)."""
     pixel, splat, weight = contributions
     height, width = fit_shape
+    total = torch.zeros(splats, 2, dtype=torch.float64)
+    drawn = torch.zeros(splats, dtype=torch.float64)
+    for start in range(0, pixel.numel(), SAMPLES_AT_ONCE):
+        p, g, w = (t[start : start + SAMPLES_AT_ONCE] for t in contributions)
+        if only is not None:
+            keep = only[g]
+            p, g, w = p[keep], g[keep], w[keep]
+        w = w.double()
+        total[:, 0].index_add_(0, g, ((p // width).double() + 0.5) * w)
+        total[:, 1].index_add_(0, g, ((p % width).double() + 0.5) * w)
+        drawn.index_add_(0, g, w)
     scale = torch.tensor([size[0] / height, size[1] / width], dtype=torch.float64)
-    position = torch.stack([pixel // width, pixel % width], 1).double() + 0.5
-    w = weight.double()[:, None]
-    total = torch.zeros(splats, 2, dtype=torch.float64).index_add_(0, splat, position * w)
-    drawn = torch.zeros(splats, 1, dtype=torch.float64).index_add_(0, splat, w)
-    return total / drawn.clamp_min(1e-12) * scale - 0.5
+    return total / drawn.clamp_min(1e-12)[:, None] * scale - 0.5
 
 
 @dataclass
@@ -194,14 +230,22 @@ def paint_view(
     disagree), and the splats' owners change from splat to splat where views share a surface."""
     pixel, splat, weight = contributions
     height, width = fit_shape
-    carried = marks.carried[splat] & (weight > 0)
-    pixel, splat, weight = pixel[carried], splat[carried], weight[carried]
-    strongest = torch.zeros(height * width).scatter_reduce_(0, pixel, weight, "amax", include_self=True)
-    top = weight >= strongest[pixel]
+
+    def carried_samples():  # a slice of the samples at a time: a dense view holds several million
+        for start in range(0, pixel.numel(), SAMPLES_AT_ONCE):
+            p, g, w = (t[start : start + SAMPLES_AT_ONCE] for t in contributions)
+            keep = marks.carried[g] & (w > 0)
+            yield p[keep], g[keep], w[keep]
+
+    strongest = torch.zeros(height * width)
+    for p, _, w in carried_samples():
+        strongest.scatter_reduce_(0, p, w, "amax", include_self=True)
     dominant = torch.full((height * width,), -1, dtype=torch.long)
-    dominant.scatter_reduce_(0, pixel[top], splat[top], "amax", include_self=True)  # ties: the larger index
+    for p, g, w in carried_samples():
+        top = w >= strongest[p]
+        dominant.scatter_reduce_(0, p[top], g[top], "amax", include_self=True)  # ties: the larger index
     painted = dominant >= 0
-    centres = splat_centres((pixel, splat, weight), fit_shape, size, marks.owner.numel())
+    centres = splat_centres(contributions, fit_shape, size, marks.owner.numel(), marks.carried)
     where = torch.nonzero(painted)[:, 0]
     owner = dominant[where]
     scale = torch.tensor([size[0] / height, size[1] / width], dtype=torch.float64)
