@@ -82,7 +82,9 @@ def test_each_splat_takes_the_translation_most_of_its_weight_votes_for_not_the_m
     assert torch.allclose(vote.agreed, torch.tensor([1.0, 0.7, 0.0]))
     # Each centre (the weighted mean of its pixels) moved by its mode translation: (3, 5) and (12, 5).
     centres = torch.tensor([[1.3, 6.5], [2.0, 2.1]], dtype=torch.float64)
-    assert torch.allclose(vote.coordinates[:2], centres + torch.tensor([[3.0, 5.0], [12.0, 5.0]], dtype=torch.float64))
+    assert torch.allclose(
+        vote.coordinates[:2].double(), centres + torch.tensor([[3.0, 5.0], [12.0, 5.0]], dtype=torch.float64)
+    )
 
 
 def test_a_field_at_half_the_fit_size_votes_by_the_proposal_pixel():
@@ -90,7 +92,7 @@ def test_a_field_at_half_the_fit_size_votes_by_the_proposal_pixel():
     field = translation_field(5, 5, source, (2, 2))  # the proposal at 5x5, the render at 10x10
     vote = vote_view((torch.tensor([99]), torch.tensor([0]), torch.tensor([1.0])), (10, 10), field, 1)
     # Fit pixel (9, 9) is proposal pixel 4.25 (centres: (9 + 0.5) / 2 - 0.5), moved by (2, 2).
-    assert torch.allclose(vote.coordinates[0], torch.tensor([6.25, 6.25], dtype=torch.float64))
+    assert torch.allclose(vote.coordinates[0].double(), torch.tensor([6.25, 6.25], dtype=torch.float64))
 
 
 def test_each_view_is_painted_as_the_splats_carry_the_painting_so_its_strokes_follow_the_surface():

@@ -609,6 +609,7 @@ class Stylization:
             votes.append(vote_view(m.samples(), fast.shape, painting_field, splats))
             self.hooks.check_cancel()
         marks = CarriedMarks.from_votes(votes)
+        del votes
         source = self.work.fields[0].source
         surfaces = None
         if self.plan.marks_by_depth:

@@ -45,7 +45,7 @@ class ViewVote:
     """One view's vote for each splat (columns of the view's colour map): where in the painting its centre lies, and
     how much blend weight agreed on it (0: the view drew it on no pixel its field covers)."""
 
-    coordinates: torch.Tensor  # [N, 2] (row, column) of the painting source: the splat's centre moved by its vote
+    coordinates: torch.Tensor  # [N, 2] float32 (row, column) of the painting source: the centre moved by its vote
     agreed: torch.Tensor  # [N] the blend weight of the splat's pixels that voted for the winning translation
 
 
@@ -72,7 +72,7 @@ def vote_view(
         shift[start : start + count], best[start : start + count] = _mode_translations(part, fit_shape, field, count)
     centres = splat_centres(contributions, fit_shape, field.rows.shape, splats)
     voted = best > 0
-    coordinates = centres + torch.where(voted[:, None], shift, 0).to(centres.dtype)
+    coordinates = (centres + torch.where(voted[:, None], shift, 0).to(centres.dtype)).float()
     return ViewVote(coordinates, torch.where(voted, best, torch.zeros_like(best)).float())
 
 
@@ -151,7 +151,10 @@ class CarriedMarks:
         strongest = agreed.max(0).values
         eligible = (agreed >= share * strongest[None]) & (agreed > 0)
         owner = eligible.float().argmax(0)  # the first eligible view
-        coordinates = torch.stack([v.coordinates for v in votes])[owner, torch.arange(owner.numel())]
+        coordinates = torch.zeros_like(votes[0].coordinates)
+        for v, vote in enumerate(votes):  # view by view: a [V, N, 2] stack of a 2M-splat scene is a quarter GB
+            mine = owner == v
+            coordinates[mine] = vote.coordinates[mine].to(coordinates.dtype)
         return cls(coordinates, torch.where(strongest > 0, owner, torch.full_like(owner, -1)))
 
     @property
