@@ -105,9 +105,7 @@ def test_children_keep_the_parents_mean_and_covariance():
 def test_parent_index_and_carried_properties():
     scene = wide_scene()
     scene.extras["label"] = np.arange(len(scene), dtype=np.float32)
-    released = []
-    result = split_wide_splats(scene, cameras(), 3.0, 10_000, before_children=lambda: released.append(len(scene)))
-    assert released == [len(scene)]  # once, before the children: the caller frees the stale renders there
+    result = split_wide_splats(scene, cameras(), 3.0, 10_000)
     out, parent = result.scene, result.parent_index
     n = len(scene)
     assert parent.dtype == np.int64 and len(parent) == len(out) == n + result.added
@@ -131,7 +129,7 @@ def test_a_fine_scene_does_not_grow():
     rng = np.random.default_rng(1)
     means, scales, quats, opacities, _ = fine_backdrop(rng, count=600, z=0.0)
     scene = scene_of(means, scales, quats, opacities, np.tile([0.4, 0.5, 0.6], (600, 1)))
-    result = split_wide_splats(scene, cameras(), 3.0, 10_000, before_children=lambda: pytest.fail("nothing split"))
+    result = split_wide_splats(scene, cameras(), 3.0, 10_000)
     assert result.added == 0 and result.split == 0 and result.scene is scene
     assert np.array_equal(result.parent_index, np.arange(len(scene)))
     assert result.summary == "no splat is wider than the marks"
@@ -319,9 +317,9 @@ def test_a_splitting_run_measures_the_split_in_the_selections_renders_and_keeps_
         asked.append((kwargs["renderers"], kwargs["blend_weights"]))
         return select(*args, **kwargs)
 
-    def splitting(scene, cameras, stroke_sigma, cap, settings, only, drawn, *rest):
+    def splitting(scene, cameras, stroke_sigma, cap, settings, only, drawn):
         measured.append(drawn)
-        return split(scene, cameras, stroke_sigma, cap, settings, only, drawn, *rest)
+        return split(scene, cameras, stroke_sigma, cap, settings, only, drawn)
 
     monkeypatch.setattr(loop.view_selection, "select_active_views", selecting)
     monkeypatch.setattr(loop, "split_wide_splats", splitting)

@@ -332,13 +332,8 @@ class Stylization:
         cap = int(self.plan.split_cap * len(self.scene))
         self.hooks.report(0, 0, 1, "select", float("nan"), "finding the splats wider than the marks")
         marks = self.entry.stroke_sigma(self.config.stroke_size) * self.fit_scale() * self.plan.split_width
-        if drawn is None and self.rendered is not None:  # each splat's blend weight is its map's column sum
-            drawn = [r.map.rmatvec(torch.ones(r.map.shape[0], 1))[:, 0] for r in self.rendered]
-
-        def release_renders() -> None:  # stale once splats split: freed before the split scene is built beside them
-            self.rendered = None
-
-        split = split_wide_splats(self.scene, self.cameras, marks, cap, self.raster, self.mask, drawn, release_renders)
+        # drawn: the selection's blend weights; None when the views were given (the split renders its own)
+        split = split_wide_splats(self.scene, self.cameras, marks, cap, self.raster, self.mask, drawn)
         self.hooks.check_cancel()
         if split.added == 0:
             return

@@ -54,7 +54,7 @@ first ``len(scene)``), so colours, selections, vertex groups and a Restore carry
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import cache
 
@@ -96,7 +96,6 @@ def split_wide_splats(
     settings: RasterSettings | None = None,
     only: np.ndarray | None = None,  # [N] bool: the splats that may be split (a selection); None: any
     blend_weights: Sequence[torch.Tensor] | None = None,  # per camera [N], when its render was made (screen_axes)
-    before_children: Callable[[], None] | None = None,  # called once splats are chosen, before the children are made
 ) -> SplitResult:
     """Split the splats the ``cameras`` see wider than ``stroke_sigma`` into children at most that wide (render
     kept; see the module notes).
@@ -104,8 +103,7 @@ def split_wide_splats(
     ``stroke_sigma``: the marks' scale in pixels of the cameras' images (the fit size); for the synth backend
     ``backends.synth_stroke_sigma(stroke_size)`` times the fit size over the proposal size. ``max_added``: at most
     this many splats are added. ``settings``: the renders that measure the views (default ``RasterSettings()``). A
-    scene with nothing wider than the marks comes back unchanged (the same object). ``before_children`` lets a caller
-    free what a split makes stale (renders of the scene) before the split scene is built beside the input."""
+    scene with nothing wider than the marks comes back unchanged (the same object)."""
     number = isinstance(stroke_sigma, int | float | np.floating) and not isinstance(stroke_sigma, bool)
     if not (number and math.isfinite(stroke_sigma) and stroke_sigma > 0):
         raise ConfigError(f"the stroke scale {stroke_sigma!r} must be a positive number of pixels")
@@ -151,8 +149,6 @@ def split_wide_splats(
     if len(chosen) == 0:
         summary = "no splat is wider than the marks" if not (edge_on or left_out) else "no splat split" + notes
         return SplitResult(scene, np.arange(n, dtype=np.int64), summary, 0, 0, edge_on + left_out)
-    if before_children is not None:
-        before_children()
     out = _assemble(scene, chosen, _children(scene, chosen, long_axes[chosen], counts[chosen]))
     parent_index = np.concatenate([np.arange(n), np.repeat(chosen, counts[chosen, 0] * counts[chosen, 1] - 1)])
     summary = f"split {len(chosen):,} wide splats into {len(parent_index) - n + len(chosen):,}" + notes
