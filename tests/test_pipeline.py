@@ -819,6 +819,10 @@ def test_early_stop_leaves_out_the_remaining_stages_and_says_so():
     assert stages[-1]["early_stop"] is True and result.log[-1]["stage"] == "post"
     assert all(e["base_style_distance"] == stages[0]["base_style_distance"] for e in stages)
     assert any("stopping after stage 2 of 4" in m for m in messages), messages
+    # The change as it was: an improvement short of the threshold, or a rise (said as one, not as a negative gain).
+    said = [m for m in messages if "stopping after" in m]
+    assert "(< 99.9%)" in said[0] or ("rose by" in said[0] and "instead of falling by 99.9%" in said[0]), said
+    assert "improved by -" not in said[0]
     full = run(style=textured_style(), config=config.with_(early_stop=0.0))
     assert [e["stage"] for e in full.log if e["stage"] != "post"] == [1, 2, 3, 4]
     assert all(math.isfinite(e["style_distance"]) for e in full.log if e["stage"] != "post")

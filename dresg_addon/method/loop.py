@@ -696,9 +696,12 @@ class Stylization:
         early_stop, moved = self.plan.early_stop, self.work.closure.get("fit_moved")
         if early_stop > 0 and stage.index < len(self.stages) and self.backend.full_detail(stage):
             if improvement is not None and improvement < early_stop:
+                change = f"improved by {improvement:.1%} (< {early_stop:.1%})"
+                if improvement < 0:  # the first full-detail stage mostly: its marks change the look
+                    change = f"rose by {-improvement:.1%} instead of falling by {early_stop:.1%}"
                 self.work.stop_reason = (
-                    f"over the last {EARLY_STOP_WINDOW} stages the style distance improved by {improvement:.1%} "
-                    f"(< {early_stop:.1%}); the remaining stages are left out"
+                    f"over the last {EARLY_STOP_WINDOW} stages the style distance {change}; the remaining stages are "
+                    "left out"
                 )
             elif moved is not None and moved < STILL_SCENE:
                 self.work.stop_reason = (
