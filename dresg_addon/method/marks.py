@@ -118,11 +118,10 @@ def splat_centres(
 ) -> torch.Tensor:  # -> [N, 2] float64 (row, column) in pixels of ``size`` (H, W); 0 for splats the view does not draw
     """Each splat's centre as the view draws it: the blend-weighted mean of its pixels' positions (summed a slice of
     samples at a time)."""
-    pixel, splat, weight = contributions
     height, width = fit_shape
     total = torch.zeros(splats, 2, dtype=torch.float64)
     drawn = torch.zeros(splats, dtype=torch.float64)
-    for start in range(0, pixel.numel(), SAMPLES_AT_ONCE):
+    for start in range(0, contributions[0].numel(), SAMPLES_AT_ONCE):
         p, g, w = (t[start : start + SAMPLES_AT_ONCE] for t in contributions)
         if only is not None:
             keep = only[g]
@@ -231,11 +230,10 @@ def paint_view(
     pixel's place against that splat's centre in this view: a translation per splat, which in a view other than the
     splat's owner breaks the strokes at the splats' borders (foreshortening makes neighbouring splats' translations
     disagree), and the splats' owners change from splat to splat where views share a surface."""
-    pixel, splat, weight = contributions
     height, width = fit_shape
 
     def carried_samples():  # a slice of the samples at a time: a dense view holds several million
-        for start in range(0, pixel.numel(), SAMPLES_AT_ONCE):
+        for start in range(0, contributions[0].numel(), SAMPLES_AT_ONCE):
             p, g, w = (t[start : start + SAMPLES_AT_ONCE] for t in contributions)
             keep = marks.carried[g] & (w > 0)
             yield p[keep], g[keep], w[keep]
