@@ -334,11 +334,16 @@ def select_active_views(
     """
     if not cameras:
         raise CameraError("no cameras: add cameras to the scene, give a cameras file, or use orbit cameras")
-    raster = config.raster(near)
     w = visibility_matrix(
-        scene, cameras, raster, progress=progress, cancel=cancel, device=device, renderers=renderers,
+        scene,
+        cameras,
+        config.raster(near),
+        progress=progress,
+        cancel=cancel,
+        device=device,
+        renderers=renderers,
         blend_weights=blend_weights,
-    )  # fmt: skip
+    )
     # Row by row from here: a [V, N] array of a 2M-splat scene, or its coordinates, would be GBs.
     rows, _ = _visibility_rows(w)
     if mask is not None:  # splats outside the selection are seen by no view, as far as coverage goes
