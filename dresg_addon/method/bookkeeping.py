@@ -264,9 +264,14 @@ class ProgressModel:
         return None
 
     def _unit_seconds(self, phase: str) -> float | None:
-        """Seconds of a part of ``phase`` at relative cost 1 (a coarse stage's joint fit), from the parts that ended."""
-        costs = self.stage_costs.get(phase, {})
-        ran = [(costs.get(stage, 1.0), t) for (kind, stage), t in self.timed.items() if kind == phase]
+        """Seconds of a part of ``phase`` at relative cost 1 (a coarse stage's joint fit), from the parts that ended:
+        per unit of their stage costs where the phase has them, else their mean."""
+        costs = self.stage_costs.get(phase)
+        ran = [
+            (costs[stage] if costs else 1.0, t)
+            for (kind, stage), t in self.timed.items()
+            if kind == phase and (not costs or stage in costs)
+        ]
         return sum(t for _, t in ran) / sum(c for c, _ in ran) if ran else None
 
     def weight(self, phase: str, stage: int) -> float:
@@ -276,9 +281,9 @@ class ProgressModel:
         costs = self.stage_costs.get(phase, {})
         if stage in costs:
             cost = costs[stage]
-            ran = [(s, t) for (kind, s), t in self.timed.items() if kind == phase and s in costs]
-            if ran:  # seconds per unit of cost, from the stages that ran
-                return sum(t for _, t in ran) / sum(costs[s] for s, _ in ran) * cost
+            unit = self._unit_seconds(phase)
+            if unit is not None:
+                return unit * cost
             if phase == "proposal":  # the backend's units: their mean is the prior's
                 cost *= len(costs) / sum(costs.values())
             return self._unmeasured(phase) * cost

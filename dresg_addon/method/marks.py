@@ -26,6 +26,7 @@ theirs the same way), instead of averaging the marks.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -61,7 +62,7 @@ def vote_view(
     pixel, splat, weight = contributions
     shift = torch.zeros(splats, 2, dtype=torch.long)
     best = torch.zeros(splats, dtype=torch.float64)
-    step = -(-splats // max(1, -(-pixel.numel() // SAMPLES_AT_ONCE)))
+    step = math.ceil(splats / max(1, math.ceil(pixel.numel() / SAMPLES_AT_ONCE)))  # splats per range
     for start in range(0, splats, step):
         count = min(step, splats - start)
         if count == splats:

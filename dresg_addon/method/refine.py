@@ -166,7 +166,8 @@ def screen_axes(
     views that draw it; [V, N] float32 its blend weight in each view; [N] the largest over the views of its blend
     weight over its footprint's area 2 pi sqrt(det Sigma_2D) (about its opacity where nothing hides it, less
     where something in front does). Zeros for the splats no view draws. ``blend_weights``: each camera's [N] blend
-    weights when its render was already made (the column sums of its colour map); else each camera is rendered."""
+    weights (every sample's T alpha) when a render made them already (the view selection's); else each camera is
+    rendered."""
     settings = settings or RasterSettings()
     means, quats, log_scales, logits = geometry_tensors(scene)
     n = len(scene)
