@@ -7,6 +7,7 @@ import torch
 
 from dresg_addon.method.color_transfer import (
     HISTOGRAM_QUANTILES,
+    StyleQuantiles,
     color_moments,
     color_transfer,
     covariance_color_transform,
@@ -151,6 +152,16 @@ def test_match_color_histograms_takes_the_style_marginals_along_its_axes():
     # The order of the pixels along each axis is kept (a monotone map per axis).
     assert torch.equal(projected.argsort(0), ((pixels - mu_s) @ axes).argsort(0))
     torch.testing.assert_close(out.mean(0), style.mean(0), atol=1e-12, rtol=0)
+
+
+def test_match_color_histograms_to_sorted_quantiles_is_the_same_match():
+    pixels = _correlated_images(1, 10, 30, RENDER_MIX, [0.4, 0.5, 0.3], seed=10)[0].reshape(3, -1).T.float()
+    style = _correlated_images(1, 35, 20, STYLE_MIX, [0.6, 0.3, 0.5], seed=11)[0].reshape(3, -1).T
+    quantiles = StyleQuantiles.of(style)
+    assert bool((quantiles.sorted.diff(dim=1) >= 0).all())
+    assert torch.equal(match_color_histograms(pixels, quantiles), match_color_histograms(pixels, style))
+    with pytest.raises(ImageError):
+        StyleQuantiles.of(torch.zeros(0, 3))
 
 
 def test_match_color_histograms_with_unequal_counts():

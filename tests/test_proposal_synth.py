@@ -9,6 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from dresg_addon.method.color_transfer import StyleQuantiles
 from dresg_addon.method.proposal.synth import (
     COVERED,
     IRLS_EPS,
@@ -577,6 +578,8 @@ def test_to_style_colors_with_coverage(histogram):
     torch.testing.assert_close(whole.double().mean((1, 2)), style.double().mean((1, 2)), atol=0.03, rtol=0)
     nothing = to_style_colors(image, style, torch.zeros(32, 40), histogram)
     assert torch.equal(nothing, image)
+    quantiles = StyleQuantiles.of(style.permute(1, 2, 0).reshape(-1, 3))
+    assert torch.equal(to_style_colors(image, style, coverage, histogram, quantiles), out)
 
 
 @pytest.mark.parametrize("histogram", [True, False])

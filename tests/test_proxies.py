@@ -10,7 +10,7 @@ from test_marks import plane_cameras as cameras  # three views from above, 1.2 a
 from dresg_addon.method.config import preset_run
 from dresg_addon.method.fitting import FitState, ViewRenderer, result_scene, seen_gaussians
 from dresg_addon.method.loop import stylize
-from dresg_addon.method.proxies import proxy_columns
+from dresg_addon.method.proxies import _equal_rows, proxy_columns
 from dresg_addon.raster import RasterSettings
 from dresg_addon.raster.rasterizer import ColorOnlyRenderer, geometry_tensors, render_scene
 from dresg_addon.scene.gaussians import GaussianScene
@@ -70,6 +70,15 @@ def test_fine_splats_share_cells_and_wide_ones_keep_their_own_column():
     # A scene whose splats are all wider than a pixel gets none.
     coarse = proxy_columns(tensors[0], tensors[2] + 3.0, views, drawn, sigma_px=0.5)
     assert not coarse.grouped and torch.equal(coarse.column, torch.arange(len(scene)))
+
+
+def test_cells_are_grouped_as_their_rows_compare_whatever_their_range():
+    g = torch.Generator().manual_seed(3)
+    near = torch.randint(-40, 40, (5000, 4), generator=g) // 9
+    far = near * (2**40)  # ranges too wide to ravel into one integer: compared row by row
+    for key in (near, far):
+        expected = torch.unique(key, dim=0, return_inverse=True)[1]
+        assert torch.equal(_equal_rows(key), expected)
 
 
 def test_every_member_takes_its_cells_colour_and_the_base_renders_stay_exact():

@@ -159,21 +159,24 @@ class _Problem:
         diagonal = views.energy[:, None].expand(-1, 3)
         self.inverse_diagonal = 1.0 / (diagonal + self.ridge + self.anchor_weight)
 
-    def value(self, x: torch.Tensor) -> float:
+    def residuals(self, x: torch.Tensor) -> list[torch.Tensor]:  # V x [P, 3]: W_v x + b_v - t_v
+        return [m.matvec(x) - r for m, r in zip(self.views.maps, self.rhs)]
+
+    def value(self, x: torch.Tensor, residuals: list[torch.Tensor]) -> float:  # f at x, from its residuals
         # Squares in float32, their sums in float64: no float64 copies of [N, 3] or [P, 3] vectors.
         total = (
             self.anchor_weight * float((x - self.anchor).square().sum(dtype=torch.float64))
             if self.anchor_weight
             else 0.0
         )
-        for m, r in zip(self.views.maps, self.rhs):
-            total += float((m.matvec(x) - r).square().sum(dtype=torch.float64))
+        for e in residuals:
+            total += float(e.square().sum(dtype=torch.float64))
         return total
 
-    def gradient(self, x: torch.Tensor) -> torch.Tensor:  # half the gradient of f
+    def gradient(self, x: torch.Tensor, residuals: list[torch.Tensor]) -> torch.Tensor:  # half the gradient of f
         g = self.anchor_weight * (x - self.anchor)
-        for m, r in zip(self.views.maps, self.rhs):
-            m.add_rmatvec(g, m.matvec(x) - r)
+        for m, e in zip(self.views.maps, residuals):
+            m.add_rmatvec(g, e)
         return g
 
     def normal(self, p: torch.Tensor) -> torch.Tensor:  # the Hessian of f (halved) times p; one W_v, W_v^T each
@@ -226,12 +229,14 @@ def projected_solve(
     (module docstring)."""
     x = start.detach().float().clamp(0.0, 1.0)
     problem = _Problem(views, targets, settings.ridge, x.clone(), settings.anchor)
-    value = problem.value(x)
+    # The accepted point's residuals serve the next round's gradient: one product with each W_v less a round.
+    residuals = problem.residuals(x)
+    value = problem.value(x, residuals)
     objectives, total = [value], 0
     if not math.isfinite(value):
         raise NumericalError("the colour fit's objective became non-finite")
     for round_index in range(1, settings.max_rounds + 1):
-        g = problem.gradient(x)
+        g = problem.gradient(x, residuals)
         free = ~(((x <= 0.0) & (g > 0)) | ((x >= 1.0) & (g < 0)))
         step, used = _cg_step(problem, g, free, settings.cg_iterations)
         total += used
@@ -239,7 +244,8 @@ def projected_solve(
         scale, accepted = 1.0, False
         for _ in range(BACKTRACKS):
             candidate = (x + scale * step).clamp(0.0, 1.0)
-            candidate_value = problem.value(candidate)
+            candidate_residuals = problem.residuals(candidate)
+            candidate_value = problem.value(candidate, candidate_residuals)
             if not math.isfinite(candidate_value):
                 raise NumericalError("the colour fit's objective became non-finite")
             if candidate_value <= value + ARMIJO * 2.0 * float(_dot(g, candidate - x).sum()):
@@ -249,7 +255,7 @@ def projected_solve(
         if not accepted:
             break
         drop = value - candidate_value
-        x, value = candidate, candidate_value
+        x, value, residuals = candidate, candidate_value, candidate_residuals
         objectives.append(value)
         if each_round is not None:
             each_round(round_index, value, x)

@@ -134,31 +134,52 @@ def _masked_pixels(images: torch.Tensor, mask: torch.Tensor | None, threshold: f
     return pixels
 
 
-def match_color_histograms(pixels: torch.Tensor, style_pixels: torch.Tensor) -> torch.Tensor:  # [M, 3], [K, 3]
-    """Exact 1-D histogram matching of ``pixels`` to ``style_pixels`` along the style's colour principal axes.
+@dataclass(frozen=True)
+class StyleQuantiles:
+    """A style's colours on its colour principal axes, sorted axis by axis: what :func:`match_color_histograms`
+    matches to. Sorting them is most of a match's time for a large style, so a caller that matches many images to
+    one style sorts them once."""
+
+    mean: torch.Tensor  # [3] float64
+    axes: torch.Tensor  # [3, 3] float64, the eigenvectors of the style's colour covariance as columns
+    sorted: torch.Tensor  # [3, K] float64: the style's pixels along each axis, increasing
+
+    @classmethod
+    def of(cls, style_pixels: torch.Tensor) -> StyleQuantiles:  # [K, 3]
+        if style_pixels.ndim != 2 or style_pixels.shape[1] != 3:
+            raise ValueError(f"expected [K, 3] style pixels, got {list(style_pixels.shape)}")
+        if style_pixels.shape[0] == 0:
+            raise ImageError("the style image has no pixels to match colour histograms to")
+        mean, cov = color_moments(style_pixels)
+        axes = torch.linalg.eigh((cov + cov.T) / 2.0).eigenvectors
+        projected = (style_pixels.to(torch.float64) - mean) @ axes
+        return cls(mean, axes, torch.sort(projected.T.contiguous(), dim=1).values)
+
+
+def match_color_histograms(pixels: torch.Tensor, style: torch.Tensor | StyleQuantiles) -> torch.Tensor:  # [M, 3]
+    """Exact 1-D histogram matching of ``pixels`` to the style's pixels ([K, 3], or their :class:`StyleQuantiles`)
+    along the style's colour principal axes.
 
     Both sets are expressed in the eigenbasis of the style's colour covariance; along each axis the
     pixel of rank i takes the style's quantile (i + 0.5) / M (linear interpolation between sorted style
     values); the result goes back to RGB. Ties keep their order (stable sort), so a flat input maps to
     the style's quantiles in pixel order. Float64 inside; the output is not clamped.
     """
-    if pixels.ndim != 2 or pixels.shape[1] != 3 or style_pixels.ndim != 2 or style_pixels.shape[1] != 3:
-        raise ValueError(f"expected [M, 3] and [K, 3] pixels, got {list(pixels.shape)} and {list(style_pixels.shape)}")
+    if pixels.ndim != 2 or pixels.shape[1] != 3:
+        raise ValueError(f"expected [M, 3] pixels, got {list(pixels.shape)}")
+    if not isinstance(style, StyleQuantiles) and (style.ndim != 2 or style.shape[1] != 3):
+        raise ValueError(f"expected [K, 3] style pixels, got {list(style.shape)}")
     if pixels.shape[0] == 0:
         return pixels.clone()
-    if style_pixels.shape[0] == 0:
-        raise ImageError("the style image has no pixels to match colour histograms to")
-    mu_s, cov_s = color_moments(style_pixels)
-    axes = torch.linalg.eigh((cov_s + cov_s.T) / 2.0).eigenvectors  # [3, 3], columns
+    quantiles = style if isinstance(style, StyleQuantiles) else StyleQuantiles.of(style)
     from .style_distance import empirical_quantiles
 
-    x = (pixels.to(torch.float64) - mu_s) @ axes
-    s = torch.sort(((style_pixels.to(torch.float64) - mu_s) @ axes).T.contiguous(), dim=1).values  # [3, K]
-    quantiles = empirical_quantiles(s, x.shape[0]).T  # [M, 3], per axis, by rank
+    x = (pixels.to(torch.float64) - quantiles.mean) @ quantiles.axes
+    ranked = empirical_quantiles(quantiles.sorted, x.shape[0]).T  # [M, 3], per axis, by rank
     order = torch.sort(x, dim=0, stable=True).indices  # [M, 3]
     matched = torch.empty_like(x)
-    matched.scatter_(0, order, quantiles)
-    return (matched @ axes.T + mu_s).to(pixels.dtype)
+    matched.scatter_(0, order, ranked)
+    return (matched @ quantiles.axes.T + quantiles.mean).to(pixels.dtype)
 
 
 def transfer_scene_colors(

@@ -31,10 +31,11 @@ PROXY_CELL_PX = 1.0  # a cell's side, in pixels of the view that sees it closest
 @dataclass(frozen=True)
 class ProxyColumns:
     """The fit's columns over the seen splats: ``column[i]`` is seen splat i's column; ``representative[g]`` the seen
-    splat that stands for column g (its first member; a splat of its own stands for itself)."""
+    splat that stands for column g (its first member; a splat of its own stands for itself). Columns run in space
+    order (:func:`spatial_order_key`), not the scene's."""
 
     column: torch.Tensor  # [M] long, in [0, count)
-    representative: torch.Tensor  # [count] long, indices into the seen splats, increasing
+    representative: torch.Tensor  # [count] long, indices into the seen splats
 
     @property
     def count(self) -> int:
@@ -81,13 +82,45 @@ def proxy_columns(
     index = torch.nonzero(small).squeeze(-1)
     level = torch.floor(torch.log2(pixel[index] * cell_px)).clamp(-126, 126)
     cell = torch.floor(means[index].double() / torch.exp2(level.double())[:, None]).long()
-    key = torch.cat([level.long()[:, None], cell], 1)
-    _, group = torch.unique(key, dim=0, return_inverse=True)
-    # Each cell is represented by its first member; a splat of its own by itself. Columns follow the
-    # representatives' order in the scene, so neighbouring columns stay neighbours in memory.
+    group = _equal_rows(torch.cat([level.long()[:, None], cell], 1))
+    # Each cell is represented by its first member; a splat of its own by itself.
     first = torch.full((int(group.max()) + 1,), m, dtype=torch.long).scatter_reduce_(0, group, index, "amin")
     representative_of = own.clone()
     representative_of[index] = first[group]
     representative = torch.unique(representative_of)  # sorted
-    column = torch.searchsorted(representative, representative_of)
-    return ProxyColumns(column, representative)
+    representative = representative[torch.argsort(spatial_order_key(means[representative]), stable=True)]
+    column_of = torch.empty(m, dtype=torch.long)
+    column_of[representative] = torch.arange(representative.numel())
+    return ProxyColumns(column_of[representative_of], representative)
+
+
+def spatial_order_key(points: torch.Tensor) -> torch.Tensor:  # [M, 3] -> [M] long
+    """A Z-order (Morton) key of each point by its rank along each axis (21 bits an axis): sorted by it, points near
+    in space are near in the order. The fit's columns in this order make a view's product gather neighbouring
+    colours from neighbouring memory: W c 25% faster on the bonsai split 8x than in a capture's own order. Ranks,
+    not coordinates, so that a few far floaters do not squeeze the scene into a handful of cells."""
+    count = points.shape[0]
+    key = torch.zeros(count, dtype=torch.long)
+    if count == 0:
+        return key
+    bits = 21
+    for axis in range(3):
+        rank = torch.empty(count, dtype=torch.long)
+        rank[torch.argsort(points[:, axis], stable=True)] = torch.arange(count)
+        cell = rank * (1 << bits) // count  # in [0, 2^21)
+        for bit in range(bits):
+            key |= ((cell >> bit) & 1) << (3 * bit + axis)
+    return key
+
+
+def _equal_rows(key: torch.Tensor) -> torch.Tensor:  # [M, D] long -> [M] long: one id per distinct row
+    """Group ids of the rows of ``key``: the rows ravelled into one integer where their ranges allow (a 1-D unique,
+    50x faster than ``torch.unique(dim=0)`` on 1.3M cells), else compared whole."""
+    low = key.amin(0)
+    span = key.amax(0) - low + 1
+    if math.prod(float(extent) for extent in span) >= 2.0**62:
+        return torch.unique(key, dim=0, return_inverse=True)[1]
+    flat = torch.zeros(key.shape[0], dtype=torch.long)
+    for d in range(key.shape[1]):
+        flat = flat * span[d] + (key[:, d] - low[d])
+    return torch.unique(flat, return_inverse=True)[1]
