@@ -3,15 +3,12 @@ the owner of each splat's marks, and the targets' fine band taken from the splat
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 
 from dresg_addon.method.config import preset_run
 from dresg_addon.method.loop import Stylization, stylize
 from dresg_addon.method.marks import (
-    LARGE_SHARE,
     CarriedMarks,
     Surfaces,
     ViewVote,
@@ -22,7 +19,6 @@ from dresg_addon.method.marks import (
     vote_view,
 )
 from dresg_addon.method.proposal.synth import PaintingField, SynthBackend, low_pass
-from dresg_addon.method.refine import screen_areas
 from dresg_addon.method.schedule import stage_timesteps
 from dresg_addon.raster.rasterizer import render_scene
 from dresg_addon.scene.camera import Camera, look_at
@@ -215,35 +211,6 @@ def test_a_point_the_first_view_does_not_see_takes_the_next_views_field_and_else
     assert not found.any() and rows.eq(0).all() and cols.eq(0).all()
     image, _ = paint_view(in_t, (32, 32), (32, 32), marks, source, 1, behind)
     assert torch.equal(image, by_splat)
-
-
-def test_a_view_that_sees_the_surface_edge_on_is_passed_over_for_one_that_draws_its_splats_larger():
-    # The plane seen first from 20 degrees above it, twice as far (its splats squeezed small), then from straight above.
-    facing = Camera(32, 32, 32.0, 32.0, 16.0, 16.0, look_at([0, 0, 1.0], [0, 0, 0]), "facing")
-    grazing = Camera(32, 32, 32.0, 32.0, 16.0, 16.0, look_at([1.88, 0.0, 0.68], [0, 0, 0]), "grazing")
-    rows, cols = torch.meshgrid(torch.arange(80.0), torch.arange(40.0), indexing="ij")
-    source = torch.stack([rows, cols, torch.zeros_like(rows)])
-    squeezed, own = translation_field(32, 32, source, (3, 4)), translation_field(32, 32, source, (20, 10))
-    depth_g, _ = plane_view(grazing, 4, facing)
-    depth_f, (pixel, splat, _) = plane_view(facing, 4, facing)
-    # The splats: flat squares of the facing view's 4x4 pixel blocks on the plane.
-    c2w = facing.camera_to_world
-    v, u = np.meshgrid(np.arange(2.0, 32, 4), np.arange(2.0, 32, 4), indexing="ij")
-    rays = np.stack([(u - facing.cx) / facing.fx, (v - facing.cy) / facing.fy, np.ones_like(u)], -1) @ c2w[:3, :3].T
-    means = torch.from_numpy(c2w[:3, 3] + (-c2w[2, 3] / rays[..., 2])[..., None] * rays).reshape(-1, 3).float()
-    log_scales = torch.tensor([math.log(2.0 / 32.0)] * 2 + [math.log(1e-4)]).expand(64, 3)
-    quats = torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(64, 4)
-    areas = screen_areas(means, quats, log_scales, [grazing, facing], [torch.ones(64, dtype=torch.bool)] * 2)
-    assert bool((areas[0] < LARGE_SHARE * areas[1]).all())  # about cos(70 degrees) / 2^2 as large
-    sized = Surfaces([grazing, facing], [depth_g, depth_f], [squeezed, own], areas)
-    plain = Surfaces([grazing, facing], [depth_g, depth_f], [squeezed, own])
-    by_order, _, found = first_views_fields(1, pixel, plain)
-    by_size, _, found_too = first_views_fields(1, pixel, sized, splat)
-    assert found.float().mean() > 0.5 and found_too.all()
-    # In the views' order the grazing view's field paints the points it sees; by size the facing view's own does.
-    grazing_rows = by_order[found]
-    assert not torch.equal(grazing_rows, own.rows.reshape(-1)[pixel][found])
-    assert torch.equal(by_size, own.rows.reshape(-1)[pixel])
 
 
 def test_owners_take_whole_surfaces_in_turn_and_unvoted_splats_have_none():

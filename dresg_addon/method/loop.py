@@ -68,7 +68,7 @@ from .losses import FitLossWeights
 from .marks import CarriedMarks, Surfaces, carried_targets, paint_view, vote_view
 from .medium import medium_for
 from .optim import FitOptimizerSettings, make_fit_optimizer, scene_extent
-from .refine import screen_areas, split_wide_splats
+from .refine import split_wide_splats
 from .schedule import Stage, stage_gammas, stage_timesteps
 from .style_distance import sliced_wasserstein_patches
 from .targets import proposal_residual, residual_target
@@ -608,9 +608,7 @@ class Stylization:
         source = self.work.fields[0].source
         surfaces = None
         if self.plan.marks_by_depth:
-            r = self.renderer
-            areas = screen_areas(r.means, r.quats, r.log_scales, self.cameras, [fast.seen for fast in r.fast])
-            surfaces = Surfaces(self.cameras, [fast.depth for fast in r.fast], self.work.fields, areas)
+            surfaces = Surfaces(self.cameras, [fast.depth for fast in self.renderer.fast], self.work.fields)
         views = [
             paint_view(m.samples(), fast.shape, self.size, marks, source, v, surfaces)
             for v, (m, fast) in enumerate(zip(maps, self.renderer.fast))

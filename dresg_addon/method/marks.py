@@ -38,7 +38,6 @@ from .proposal.synth import PaintingField, low_pass
 
 COVERED = 0.5  # alpha above which a pixel's fine band comes from the splats' marks
 OWNER_SHARE = 0.5  # a splat's marks from the first view whose vote is at least this share of the strongest's
-LARGE_SHARE = 0.25  # views drawing a pixel's splat at least this share of its largest screen area are asked first
 SAMPLES_AT_ONCE = 2_000_000  # a view's samples worked on at a time (a 2.2M-splat scene's view holds several million)
 
 
@@ -171,26 +170,18 @@ class Surfaces:
     cameras: Sequence[Camera]
     depths: Sequence[torch.Tensor]  # V x [H, W]
     fields: Sequence[PaintingField]
-    areas: torch.Tensor | None = None  # [V, N]: each splat's area on screen in each view (refine.screen_areas)
 
 
 def first_views_fields(
     view: int,
     where: torch.Tensor,  # [P] the view's pixels (flat, at its camera's size)
     surfaces: Surfaces,
-    splats: torch.Tensor | None = None,  # [P] the splat drawn most at each pixel (needed with ``surfaces.areas``)
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # -> rows [P], cols [P] into the source, found [P] bool
     """Where in the painting the first view (in the views' order) that sees each pixel's surface point shows it: the
     pixel unprojected by this view's depth, projected into each view in turn (``scene.warp``'s conventions), and that
     view's field at its proposal pixel there. A view sees the point where it is in front of it, in its image, the
     surface it draws there (depths within ``DEPTH_TOLERANCE``) and its field valid. Not found (rows and cols 0) where
-    the pixel has no depth or no view sees its point.
-
-    With ``surfaces.areas``, the views that draw the pixel's splat at least ``LARGE_SHARE`` as large as the view that
-    draws it largest are asked first, then the others: a view that sees a face nearly edge-on squeezes the
-    painting's marks into streaks there (on the demo, a cube's face seen edge-on by its first view read as a dark
-    hole), and a splat's area on screen (for a flat splat, how finely the view resolves its surface: cos / z^2)
-    changes smoothly from splat to splat, so neighbours pick the same view."""
+    the pixel has no depth or no view sees its point."""
     camera = surfaces.cameras[view]
     f64 = torch.float64
     z = surfaces.depths[view].reshape(-1)[where].to(f64)
@@ -199,9 +190,10 @@ def first_views_fields(
     points = torch.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], 1)
     rows, cols = torch.zeros_like(where), torch.zeros_like(where)
     found = torch.zeros_like(where, dtype=torch.bool)
-
-    def ask(other: int, pick: torch.Tensor) -> None:
-        target, field = surfaces.cameras[other], surfaces.fields[other]
+    for other, (target, field) in enumerate(zip(surfaces.cameras, surfaces.fields)):
+        pick = torch.nonzero(~found & (z > 0))[:, 0]
+        if pick.numel() == 0:
+            break
         transform = torch.as_tensor(target.world_to_camera @ camera.camera_to_world, dtype=f64)
         seen = points[pick] @ transform[:3, :3].T + transform[:3, 3]
         zo = seen[:, 2]
@@ -219,21 +211,6 @@ def first_views_fields(
         rows[pick] = torch.where(ok, field.rows[yp, xp], 0)
         cols[pick] = torch.where(ok, field.cols[yp, xp], 0)
         found[pick] = ok
-
-    if surfaces.areas is not None:
-        if splats is None:
-            raise ValueError("first_views_fields: surfaces with areas need each pixel's splat")
-        largest = surfaces.areas.amax(0)[splats]
-        for other in range(len(surfaces.cameras)):
-            large = (surfaces.areas[other, splats] >= LARGE_SHARE * largest) & (largest > 0)
-            pick = torch.nonzero(~found & (z > 0) & large)[:, 0]
-            if pick.numel():
-                ask(other, pick)
-    for other in range(len(surfaces.cameras)):
-        pick = torch.nonzero(~found & (z > 0))[:, 0]
-        if pick.numel() == 0:
-            break
-        ask(other, pick)
     return rows, cols, found
 
 
@@ -282,7 +259,7 @@ def paint_view(
     row = torch.minimum(torch.maximum(coordinate[:, 0], lower), lower + half - 1)
     col = coordinate[:, 1].clamp(0, cols - 1)
     if surfaces is not None:
-        carried_row, carried_col, found = first_views_fields(view, where, surfaces, owner)
+        carried_row, carried_col, found = first_views_fields(view, where, surfaces)
         row, col = torch.where(found, carried_row, row), torch.where(found, carried_col, col)
     image = torch.zeros(3, height * width)
     image[:, where] = source.reshape(3, -1)[:, row * cols + col]

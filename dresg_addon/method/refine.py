@@ -203,26 +203,6 @@ def screen_axes(
     return axes.numpy(), view_weights.numpy(), torch.nan_to_num(drawn, nan=0.0, posinf=0.0).numpy()
 
 
-def screen_areas(
-    means: torch.Tensor,  # [N, 3]
-    quats: torch.Tensor,  # [N, 4]
-    log_scales: torch.Tensor,  # [N, 3]
-    cameras: Sequence[Camera],
-    drawn: Sequence[torch.Tensor],  # V x [N] bool: the splats each view draws
-) -> torch.Tensor:  # [V, N] float32
-    """Each splat's area on screen in each view, sqrt det of its 2D covariance (pixels squared, the rasterizer's
-    low-pass left out), 0 in the views that do not draw it. For a flat splat it is how finely the view resolves
-    its surface there: cos(angle to the normal) / z^2, up to the splat's own size."""
-    out = torch.zeros(len(cameras), means.shape[0])
-    for v, (camera, seen) in enumerate(zip(cameras, drawn)):
-        index = torch.nonzero(seen).squeeze(-1)
-        columns = _screen_columns(means[index], quats[index], log_scales[index], camera)  # [M, 3, 2]
-        cov = torch.einsum("mia,mib->mab", columns, columns)
-        area = (cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] ** 2).clamp_min(0.0).sqrt()
-        out[v, index] = torch.nan_to_num(area, nan=0.0, posinf=0.0).float()
-    return out
-
-
 def _thickness(scene, cameras, view_weights, index, axis_order) -> np.ndarray:  # -> [M, 2]
     """Per splat ``index`` and long axis: the largest, over the views that draw it at least STRONG_VIEW as much as its
     best view, of its unsplit thickness on screen (third axis, low-pass included) over that axis's screen sigma."""
