@@ -424,7 +424,9 @@ def _poison_the_fit(monkeypatch, color_fit: str, poisoned: threading.Event) -> s
 
     real_value = color_solve._Problem.value
     monkeypatch.setattr(
-        color_solve._Problem, "value", lambda self, x: float("nan") if poisoned.is_set() else real_value(self, x)
+        color_solve._Problem,
+        "value",
+        lambda self, x, residuals: float("nan") if poisoned.is_set() else real_value(self, x, residuals),
     )
     return "non-finite at stage {stage}"
 
