@@ -2,7 +2,7 @@
 """How many splats the render-preserving split adds, how long it takes, and how much it changes the render.
 
     .venv/bin/python bench/refine.py [--scenes demo,bonsai,luigi,bonsai8] [--stroke-sigma 1.35] [--max-added-share 0.35]
-        [--views 16] [--width 448] [--height 320]
+        [--min-added 50000] [--views 16] [--width 448] [--height 320]
 
 Cameras as bench/quality.py places them: ``--views`` orbit cameras (the fit views, the ones the split is
 measured in) and as many novel ones half a step between them. Per scene: the splats split and added
@@ -61,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         help="children at most this wide, pixels of the views (standard: 0.3 x 4.5)",
     )
     parser.add_argument("--max-added-share", type=float, default=0.35, help="cap on splats added, share of the scene")
+    parser.add_argument("--min-added", type=int, default=50_000, help="... but at least this many (standard's floor)")
     parser.add_argument("--views", type=int, default=16)
     parser.add_argument("--width", type=int, default=448)
     parser.add_argument("--height", type=int, default=320)
@@ -88,7 +89,9 @@ def main(argv: list[str] | None = None) -> int:
         fit_views = orbit_cameras(scene, args.views, **size)
         novel = orbit_cameras(scene, args.views, azimuth_offset_deg=180.0 / args.views, **size)
         started = time.perf_counter()
-        result = split_wide_splats(scene, fit_views, args.stroke_sigma, int(args.max_added_share * len(scene)))
+        result = split_wide_splats(
+            scene, fit_views, args.stroke_sigma, max(int(args.max_added_share * len(scene)), args.min_added)
+        )
         seconds = time.perf_counter() - started
         cells = []
         for cameras in (fit_views, novel):

@@ -103,7 +103,14 @@ def test_a_bad_setting_names_itself(changes, field):
 def test_a_plan_checks_its_fields_and_takes_the_ablation_flags_by_name():
     plan = PLANS["preview"].with_(feedback=False, fit_steps=2)
     assert plan.ablation.feedback is False and plan.fit_steps == 2 and plan.ablation.pcgrad is True
-    for bad in ({"updates_per_stage": 0}, {"schedule": "linear"}, {"early_stop": 1.0}, {"best_views": float("nan")}):
+    for bad in (
+        {"updates_per_stage": 0},
+        {"schedule": "linear"},
+        {"early_stop": 1.0},
+        {"best_views": float("nan")},
+        {"split_floor": -1},
+        {"split_floor": 0.5},
+    ):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             Plan(**bad)
     with pytest.raises(ConfigError, match="exceed"):

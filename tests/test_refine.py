@@ -246,7 +246,7 @@ def test_bad_settings_are_refused(stroke, cap):
 # --- through a run --------------------------------------------------------------------------------------
 
 
-def _run_on_wide_scene(split_cap=0.5, split_width=1.0, **kwargs):
+def _run_on_wide_scene(split_cap=0.5, split_width=1.0, split_floor=0, **kwargs):
     from dresg_addon.method.config import preset_run
     from dresg_addon.method.loop import stylize
 
@@ -260,6 +260,7 @@ def _run_on_wide_scene(split_cap=0.5, split_width=1.0, **kwargs):
         stroke_size=0.5,
         split_cap=split_cap,
         split_width=split_width,
+        split_floor=split_floor,
     )
     style = np.random.default_rng(3).uniform(0.0, 1.0, (24, 32, 3)).astype(np.float32)
     return stylize(wide_scene(), cameras(), style, config, plan=plan, **kwargs)
@@ -303,6 +304,16 @@ def test_without_a_cap_the_scene_keeps_its_splats_and_only_standard_splits():
     result = _run_on_wide_scene(split_cap=0.0)
     assert result.parents is None and len(result.scene) == len(wide_scene())
     assert [name for name, plan in PLANS.items() if plan.split_cap > 0] == ["standard"]
+
+
+def test_a_small_scene_may_add_the_floor_where_its_share_would_add_nothing():
+    n = len(wide_scene())
+    share = 0.5 / n  # int(share * n) == 0: the share alone allows nothing
+    assert _run_on_wide_scene(split_cap=share).parents is None
+    result = _run_on_wide_scene(split_cap=share, split_floor=10_000)
+    assert result.parents is not None and len(result.scene) == len(_run_on_wide_scene(split_cap=4.0).scene) > n
+    # no share, no split, whatever the floor
+    assert _run_on_wide_scene(split_cap=0.0, split_floor=10_000).parents is None
 
 
 def test_a_splitting_run_measures_the_split_in_the_selections_renders_and_keeps_no_stale_maps(monkeypatch):

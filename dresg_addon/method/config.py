@@ -62,6 +62,9 @@ class Plan:
     # Splats the active views draw wider than the strokes are split first, adding at most this share of the scene
     # (method/refine.py); 0: the scene keeps its splats.
     split_cap: float = 0.0
+    # ... but at least this many, whatever the scene's size (with split_cap > 0): the cap guards time and memory,
+    # which grow with the count added, and a small scene of wide splats needs more than a share (Luigi: +153%).
+    split_floor: int = 0
     # The split's children are at most this many stroke scales wide (the stroke scale: the backend's stroke sigma).
     split_width: float = 1.0
     # Each splat carries where in the painting its colour comes from, and the views' targets take their marks from
@@ -84,6 +87,10 @@ class Plan:
                 (0 <= self.early_stop < 1, "early_stop must be in [0, 1) (0: off)"),
                 (math.isfinite(self.best_views) and self.best_views >= 0, "best_views must be >= 0"),
                 (math.isfinite(self.split_cap) and 0 <= self.split_cap <= 4, "split_cap must be in [0, 4]"),
+                (
+                    isinstance(self.split_floor, int) and self.split_floor >= 0,
+                    "split_floor must be a whole number >= 0",
+                ),
                 (math.isfinite(self.split_width) and 0.1 <= self.split_width <= 4, "split_width must be in [0.1, 4]"),
                 (math.isfinite(self.proxy_sigma) and self.proxy_sigma >= 0, "proxy_sigma must be >= 0"),
             ]
@@ -217,6 +224,7 @@ PLANS: dict[str, Plan] = {
         best_views_coarse=False,
         carry_marks=True,
         split_cap=0.35,
+        split_floor=50_000,
         split_width=0.3,
     ),
     # Half the stages and views of standard and the joint fit alone: the best views cost it 43 -> 73 s on the bonsai.

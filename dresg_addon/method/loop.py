@@ -323,13 +323,13 @@ class Stylization:
 
     def refine(self) -> None:
         """Splats as fine as the marks (:func:`~.refine.split_wide_splats`): those the active views draw wider than
-        the backend's strokes are split into children that render as they did, at most the plan's ``split_cap`` of
-        the scene more; the selection and the input's colours carry over to the children."""
+        the backend's strokes are split into children that render as they did, adding at most
+        :meth:`split_budget` splats; the selection and the input's colours carry over to the children."""
         self.parents = None
         drawn, self.blend_weights = self.blend_weights, None
         if not self.splits():
             return
-        cap = int(self.plan.split_cap * len(self.scene))
+        cap = self.split_budget()
         self.hooks.report(0, 0, 1, "select", float("nan"), "finding the splats wider than the marks")
         marks = self.entry.stroke_sigma(self.config.stroke_size) * self.fit_scale() * self.plan.split_width
         # drawn: the selection's blend weights; None when the views were given (the split renders its own)
@@ -345,7 +345,14 @@ class Stylization:
     def splits(self) -> bool:
         """Whether the run splits the splats wider than the marks (:meth:`refine`): the plan allows some and the
         backend has a stroke scale."""
-        return int(self.plan.split_cap * len(self.scene)) > 0 and self.entry.stroke_sigma is not None
+        return self.split_budget() > 0 and self.entry.stroke_sigma is not None
+
+    def split_budget(self) -> int:
+        """Splats the split may add: the plan's ``split_cap`` share of the scene, and at least its ``split_floor``
+        (none when the share is 0)."""
+        if self.plan.split_cap == 0:
+            return 0
+        return max(int(self.plan.split_cap * len(self.scene)), self.plan.split_floor)
 
     def fit_scale(self) -> float:
         """Fit pixels per proposal pixel, averaged over the active views."""
