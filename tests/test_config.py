@@ -110,6 +110,7 @@ def test_a_plan_checks_its_fields_and_takes_the_ablation_flags_by_name():
         {"best_views": float("nan")},
         {"split_floor": -1},
         {"split_floor": 0.5},
+        {"marks_emphasis": -1.0},
     ):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             Plan(**bad)

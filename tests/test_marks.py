@@ -13,9 +13,12 @@ from dresg_addon.method.marks import (
     Surfaces,
     ViewVote,
     carried_targets,
+    emphasis_gains,
+    emphasized,
     fine_band,
     first_views_fields,
     paint_view,
+    painting_band_deviation,
     vote_view,
 )
 from dresg_addon.method.proposal.synth import PaintingField, SynthBackend, low_pass
@@ -246,6 +249,44 @@ def test_targets_keep_their_coarse_bands_and_take_the_splats_fine_band_on_covere
     assert torch.allclose(same, target, atol=1e-5)
 
 
+def marks_on_grey(seed: int = 4, size: int = 40) -> torch.Tensor:  # [3, H, W]: fine marks around mid grey
+    g = torch.Generator().manual_seed(seed)
+    return (0.5 + 0.15 * (torch.rand(1, size, size, generator=g) - 0.5)).expand(3, size, size).clone()
+
+
+def test_a_fit_that_drew_half_of_the_marks_asks_for_them_twice_as_strong_up_to_the_painting():
+    target, alpha = marks_on_grey(), torch.ones(40, 40)
+    half = target - 0.5 * fine_band(target, alpha, 1.5)  # the fit drew half the band
+    asked = float(fine_band(target, alpha, 1.5).std())
+    (gain,) = emphasis_gains([target], [half], [alpha], 1.5, asked, most=4.0)
+    assert abs(gain - 1.0) < 0.1  # about half: the blur of a band is not quite nothing
+    (capped,) = emphasis_gains([target], [half], [alpha], 1.5, asked, most=0.5)
+    assert capped == 0.5
+    # the target already twice as strong as the painting: what the fit drew (its band equal to the painting's) is enough
+    (strong,) = emphasis_gains([target], [half], [alpha], 1.5, asked / 2, most=4.0)
+    assert strong == 0.0
+    # drawn whole, nothing more is asked; a flat target, an empty view and a flat painting ask for nothing either
+    flat = torch.full((3, 40, 40), 0.5)
+    assert emphasis_gains([target], [target], [alpha], 1.5, asked, most=4.0) == [0.0]
+    assert emphasis_gains([flat], [flat], [alpha], 1.5, asked, most=4.0) == [0.0]
+    assert emphasis_gains([target], [half], [torch.zeros(40, 40)], 1.5, asked, most=4.0) == [0.0]
+    assert emphasis_gains([target], [half], [alpha], 1.5, 0.0, most=4.0) == [0.0]
+
+
+def test_emphasis_strengthens_the_fine_band_on_covered_pixels_only_and_stays_in_range():
+    target, alpha = marks_on_grey(), torch.ones(40, 40)
+    alpha[:, :10] = 0.0
+    (out,) = emphasized([target], [alpha], [1.0], 1.5)
+    assert torch.equal(out[:, :, :10], target[:, :, :10])
+    inner = (slice(None), slice(8, 32), slice(18, 32))
+    assert float(fine_band(out, alpha, 1.5)[inner].std()) > 1.8 * float(fine_band(target, alpha, 1.5)[inner].std())
+    (saturated,) = emphasized([torch.where(target > 0.5, 1.0, 0.0)], [alpha], [4.0], 1.5)
+    assert saturated.min() >= 0 and saturated.max() <= 1
+    (flat,) = emphasized([torch.full((3, 40, 40), 0.3)], [alpha], [2.0], 1.5)
+    assert torch.allclose(flat, torch.full((3, 40, 40), 0.3), atol=1e-6)
+    assert painting_band_deviation(target, 1.5) > 0 and painting_band_deviation(torch.zeros(3, 8, 8), 1.5) == 0
+
+
 # --- Through the loop: a plane seen by three views --------------------------------------------------------
 
 
@@ -287,7 +328,7 @@ def stroke_painting(height: int = 48, width: int = 64) -> np.ndarray:
     return np.clip(canvas, 0, 1)
 
 
-def stylized_plane(carry: bool):
+def stylized_plane(carry: bool, scene: GaussianScene | None = None, messages=None, **plan):
     """The plane stylized from its three views; each view's last images (render, proposal, marks, target) by name."""
     images = {}
 
@@ -302,9 +343,13 @@ def stylized_plane(carry: bool):
         proposal_height=48,
         stroke_size=1.0,
         carry_marks=carry,
+        **plan,
     )
     cameras = plane_cameras()
-    result = stylize(plane_scene(), cameras, stroke_painting(), config, plan=plan, views=[0, 1, 2], on_stage=on_stage)
+    scene = plane_scene() if scene is None else scene
+    result = stylize(
+        scene, cameras, stroke_painting(), config, plan=plan, views=[0, 1, 2], on_stage=on_stage, messages=messages
+    )
     return result, cameras, [images[c.name] for c in cameras]
 
 
@@ -343,6 +388,25 @@ def test_strokes_through_the_splats_coordinates_line_up_across_views_where_per_v
     proposals, marks = agreement("proposal"), agreement("marks")
     assert proposals < 0.2 and marks > 0.5, (proposals, marks)
     assert agreement_of_renders(renders, cameras, depths, alphas) > 0.6  # the scene's own views: the warp's ceiling
+
+
+def test_on_splats_wider_than_the_marks_the_fit_asks_again_for_what_it_lost_and_draws_stronger_marks():
+    wide = plane_scene(side=36, spacing=2.0 / 72)  # splats about 2 px in these views: they draw a share of the marks
+    said = []
+    plain, cameras, _ = stylized_plane(True, wide)
+    stronger, _, _ = stylized_plane(True, wide, said.append, marks_emphasis=1.5)
+    assert any(line.startswith("marks emphasised") for line in said), said
+    assert np.isfinite(stronger.scene.sh_dc).all()
+
+    def band(result) -> float:  # the renders' band finer than the children's width, over the covered pixels
+        values = []
+        for camera in cameras:
+            out = render_scene(result.scene, camera)
+            image, alpha = torch.as_tensor(out.rgb).permute(2, 0, 1).float(), torch.as_tensor(out.alpha).float()
+            values.append(float(fine_band(image, alpha, 2.0)[:, alpha > 0.9].std()))
+        return float(np.mean(values))
+
+    assert band(stronger) > 1.08 * band(plain), (band(stronger), band(plain))  # 1.14 when written
 
 
 def agreement_of_renders(renders, cameras, depths, alphas) -> float:

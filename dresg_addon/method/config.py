@@ -73,6 +73,10 @@ class Plan:
     # With carry_marks, each view is painted through the first view that sees each point, by depth (the strokes run
     # on over the surface), else by a translation per splat (marks.paint_view).
     marks_by_depth: bool = True
+    # With carry_marks, the stage's fit runs again with each view's marks finer than the split's children asked for
+    # as much more as the first fit lost, up to the painting's strength, at most 1 + this (marks.emphasis_gains); 0:
+    # one fit.
+    marks_emphasis: float = 0.0
     # With geometry frozen, splats narrower than this many pixels in every active view share a colour per pixel-sized
     # cell during the fit (method/proxies.py); 0: every splat its own.
     proxy_sigma: float = 0.5
@@ -92,6 +96,10 @@ class Plan:
                     "split_floor must be a whole number >= 0",
                 ),
                 (math.isfinite(self.split_width) and 0.1 <= self.split_width <= 4, "split_width must be in [0.1, 4]"),
+                (
+                    math.isfinite(self.marks_emphasis) and 0 <= self.marks_emphasis <= 4,
+                    "marks_emphasis must be in [0, 4]",
+                ),
                 (math.isfinite(self.proxy_sigma) and self.proxy_sigma >= 0, "proxy_sigma must be >= 0"),
             ]
         )
@@ -223,6 +231,7 @@ PLANS: dict[str, Plan] = {
         best_views=4.0,
         best_views_coarse=False,
         carry_marks=True,
+        marks_emphasis=1.5,
         split_cap=0.35,
         split_floor=50_000,
         split_width=0.3,

@@ -17,6 +17,10 @@ surface point (by depth) shows there, that view's copy of the painting carried o
 the strokes sit on the surface and keep their length; where no view's field sees it, the painting at the coordinate
 of the splat drawn most there, moved by the pixel's place against that splat's centre.
 
+The fit sees a target through the splats, a colour each, so it draws a share of the marks finer than the splats'
+width; on the stages that carry marks the fit runs again with that band asked for as much more as the first fit
+lost, up to the painting's own strength (:func:`emphasis_gains`, :func:`emphasized`).
+
 What the painting's raw pixels do not hold (the scene's forms and light, the palette's regions) is in the
 proposals' coarse bands, which the views agree on; so each view's target keeps its coarse bands and takes its fine
 band, below the stroke scale, from its painting as the splats carry it (:func:`carried_targets`).
@@ -292,4 +296,50 @@ def carried_targets(
         covered = covered.to(target.dtype)[None]
         swapped = target - fine_band(target, alpha, sigma) + fine_band(render, alpha, sigma)
         out.append((target + covered * (swapped - target)).clamp(0.0, 1.0))
+    return out
+
+
+def painting_band_deviation(source: torch.Tensor, sigma: float) -> float:
+    """The standard deviation of the painting's band finer than ``sigma`` pixels of ``source`` [3, H, W]."""
+    return float(fine_band(source.float(), torch.ones(source.shape[1:]), sigma).std())
+
+
+def emphasis_gains(
+    targets: Sequence[torch.Tensor],  # V x [3, H, W]: the stage's targets, their marks carried
+    renders: Sequence[torch.Tensor],  # V x [3, H, W]: the fit's renders of them
+    alphas: Sequence[torch.Tensor],  # V x [H, W]
+    sigma: float,  # the splats' width (the split's children), in fit pixels
+    painting: float,  # the painting's deviation in the same band, at the views' scale (painting_band_deviation)
+    most: float,  # the largest gain
+) -> list[float]:
+    """Per view, how much more of its band finer than ``sigma`` the target asks for in the second fit: k_v =
+    1 / (rho_v max(tau_v, 1)) - 1 in [0, ``most``], rho_v the band's deviation in the fitted render over the target's
+    (the share the splats drew), tau_v the target's over the painting's. What the splats lost comes back, up to the
+    painting's own strength: a target whose foreshortened copies already hold more than the painting gets less."""
+    gains = []
+    for target, render, alpha in zip(targets, renders, alphas):
+        covered = alpha > COVERED
+        weight = alpha * covered
+        wanted = fine_band(target, weight, sigma)[:, covered]
+        if wanted.numel() < 2 or not painting > 0:
+            gains.append(0.0)
+            continue
+        asked = float(wanted.std())
+        drawn = float(fine_band(render, weight, sigma)[:, covered].std())
+        if not asked > 1e-6:  # a target with no marks in the band: nothing to ask for
+            gains.append(0.0)
+            continue
+        kept = drawn / asked * max(asked / painting, 1.0)
+        gains.append(min(max(1.0 / max(kept, 1e-3) - 1.0, 0.0), most))
+    return gains
+
+
+def emphasized(
+    targets: Sequence[torch.Tensor], alphas: Sequence[torch.Tensor], gains: Sequence[float], sigma: float
+) -> list[torch.Tensor]:
+    """Each target with its band finer than ``sigma`` (1 + gain) times as strong on covered pixels, in [0, 1]."""
+    out = []
+    for target, alpha, gain in zip(targets, alphas, gains):
+        covered = (alpha > COVERED).to(target.dtype)
+        out.append((target + gain * covered[None] * fine_band(target, alpha * covered, sigma)).clamp(0.0, 1.0))
     return out
