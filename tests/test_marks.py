@@ -271,6 +271,7 @@ def test_a_fit_that_drew_half_of_the_marks_asks_for_them_twice_as_strong_up_to_t
     assert emphasis_gains([flat], [flat], [alpha], 1.5, asked, most=4.0) == [0.0]
     assert emphasis_gains([target], [half], [torch.zeros(40, 40)], 1.5, asked, most=4.0) == [0.0]
     assert emphasis_gains([target], [half], [alpha], 1.5, 0.0, most=4.0) == [0.0]
+    assert emphasis_gains([target], [torch.full_like(target, float("nan"))], [alpha], 1.5, asked, most=4.0) == [0.0]
 
 
 def test_emphasis_strengthens_the_fine_band_on_covered_pixels_only_and_stays_in_range():

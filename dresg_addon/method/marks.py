@@ -326,7 +326,7 @@ def emphasis_gains(
             continue
         asked = float(wanted.std())
         drawn = float(fine_band(render, weight, sigma)[:, covered].std())
-        if not asked > 1e-6:  # a target with no marks in the band: nothing to ask for
+        if not (asked > 1e-6 and math.isfinite(asked) and math.isfinite(drawn)):  # no marks there to ask for
             gains.append(0.0)
             continue
         kept = drawn / asked * max(asked / painting, 1.0)
