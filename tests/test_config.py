@@ -111,6 +111,8 @@ def test_a_plan_checks_its_fields_and_takes_the_ablation_flags_by_name():
         {"split_floor": -1},
         {"split_floor": 0.5},
         {"marks_emphasis": -1.0},
+        {"emphasis_width": 0.0},
+        {"emphasis_width": float("inf")},
     ):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             Plan(**bad)

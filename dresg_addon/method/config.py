@@ -73,10 +73,12 @@ class Plan:
     # With carry_marks, each view is painted through the first view that sees each point, by depth (the strokes run
     # on over the surface), else by a translation per splat (marks.paint_view).
     marks_by_depth: bool = True
-    # With carry_marks, the stage's fit runs again with each view's marks finer than the split's children asked for
-    # as much more as the first fit lost, up to the painting's strength, at most 1 + this (marks.emphasis_gains); 0:
-    # one fit.
+    # With carry_marks, the stage's fit runs again with each view's marks finer than emphasis_width asked for as much
+    # more as the first fit lost, up to the painting's strength, at most 1 + this (marks.emphasis_gains); 0: one fit.
     marks_emphasis: float = 0.0
+    # The band the second fit asks more of: finer than this many stroke scales (0.6: the fine and middle bands of the
+    # marks' contrast on the bonsai; docs/decisions/019-marks-emphasised.md).
+    emphasis_width: float = 0.6
     # With geometry frozen, splats narrower than this many pixels in every active view share a colour per pixel-sized
     # cell during the fit (method/proxies.py); 0: every splat its own.
     proxy_sigma: float = 0.5
@@ -99,6 +101,10 @@ class Plan:
                 (
                     math.isfinite(self.marks_emphasis) and 0 <= self.marks_emphasis <= 4,
                     "marks_emphasis must be in [0, 4]",
+                ),
+                (
+                    math.isfinite(self.emphasis_width) and 0.1 <= self.emphasis_width <= 4,
+                    "emphasis_width must be in [0.1, 4]",
                 ),
                 (math.isfinite(self.proxy_sigma) and self.proxy_sigma >= 0, "proxy_sigma must be >= 0"),
             ]

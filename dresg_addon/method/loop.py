@@ -647,10 +647,10 @@ class Stylization:
         self.hooks.report(n, 0, 1, "feedback", float("nan"), feedback)
 
     def _emphasize_marks(self, targets: list[torch.Tensor], stage: int) -> dict:
-        """The stage's fit again, each view's marks finer than the split's children asked for as much more as the
-        first fit lost (marks.emphasis_gains): a colour per splat draws a share of them."""
+        """The stage's fit again, each view's marks finer than ``Plan.emphasis_width`` stroke scales asked for as much
+        more as the first fit lost (marks.emphasis_gains): a colour per splat draws a share of them."""
         scale = self.fit_scale()
-        sigma = self.plan.split_width * self.entry.stroke_sigma(self.config.stroke_size) * scale
+        sigma = self.plan.emphasis_width * self.entry.stroke_sigma(self.config.stroke_size) * scale
         painting = painting_band_deviation(self.work.fields[0].source, sigma / scale)
         gains = emphasis_gains(targets, self.work.renders, self.alphas, sigma, painting, self.plan.marks_emphasis)
         self.hooks.say(f"marks emphasised where the splats drew them weaker: gain {min(gains):.2f}-{max(gains):.2f}")

@@ -17,9 +17,9 @@ surface point (by depth) shows there, that view's copy of the painting carried o
 the strokes sit on the surface and keep their length; where no view's field sees it, the painting at the coordinate
 of the splat drawn most there, moved by the pixel's place against that splat's centre.
 
-The fit sees a target through the splats, a colour each, so it draws a share of the marks finer than the splats'
-width; on the stages that carry marks the fit runs again with that band asked for as much more as the first fit
-lost, up to the painting's own strength (:func:`emphasis_gains`, :func:`emphasized`).
+The fit sees a target through the splats, a colour each and shared by the views, so it draws a share of the marks
+finer than about half a stroke; on the stages that carry marks the fit runs again with that band asked for as much
+more as the first fit lost, up to the painting's own strength (:func:`emphasis_gains`, :func:`emphasized`).
 
 What the painting's raw pixels do not hold (the scene's forms and light, the palette's regions) is in the
 proposals' coarse bands, which the views agree on; so each view's target keeps its coarse bands and takes its fine
@@ -308,7 +308,7 @@ def emphasis_gains(
     targets: Sequence[torch.Tensor],  # V x [3, H, W]: the stage's targets, their marks carried
     renders: Sequence[torch.Tensor],  # V x [3, H, W]: the fit's renders of them
     alphas: Sequence[torch.Tensor],  # V x [H, W]
-    sigma: float,  # the splats' width (the split's children), in fit pixels
+    sigma: float,  # the band's width, in fit pixels (Plan.emphasis_width stroke scales)
     painting: float,  # the painting's deviation in the same band, at the views' scale (painting_band_deviation)
     most: float,  # the largest gain
 ) -> list[float]:
