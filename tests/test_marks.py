@@ -336,16 +336,8 @@ def stylized_plane(carry: bool, scene: GaussianScene | None = None, messages=Non
     def on_stage(update):
         images.update(update.images)
 
-    config, plan = preset_run(
-        "preview",
-        stages=1,
-        updates_per_stage=12,
-        proposal_width=64,
-        proposal_height=48,
-        stroke_size=1.0,
-        carry_marks=carry,
-        **plan,
-    )
+    settings = {"stages": 1, "updates_per_stage": 12, "proposal_width": 64, "proposal_height": 48, "stroke_size": 1.0}
+    config, plan = preset_run("preview", **{**settings, "carry_marks": carry, **plan})
     cameras = plane_cameras()
     scene = plane_scene() if scene is None else scene
     result = stylize(
@@ -426,3 +418,15 @@ def test_a_view_worked_on_a_slice_of_samples_at_a_time_votes_and_paints_the_same
     assert torch.equal(whole[0].agreed, sliced[0].agreed) and whole[0].agreed.gt(0).sum() > 100
     torch.testing.assert_close(whole[0].coordinates, sliced[0].coordinates, rtol=0, atol=1e-9)
     assert torch.equal(whole[1][0], sliced[1][0]) and torch.equal(whole[1][1], sliced[1][1])
+
+
+def test_only_the_last_stage_is_fitted_a_second_time():
+    # Earlier stages are fitted once: their style distances decide the early stop, and a second fit's gain would read
+    # as progress and run stages more.
+    said = []
+    wide = plane_scene(side=36, spacing=2.0 / 72)
+    stylized_plane(True, wide, said.append, stages=3, marks_emphasis=1.5)
+    carried = [line for line in said if line.startswith("marks carried by")]
+    emphasised = [i for i, line in enumerate(said) if line.startswith("marks emphasised")]
+    assert len(carried) >= 2 and len(emphasised) == 1, said
+    assert emphasised[0] > max(i for i, line in enumerate(said) if line.startswith("marks carried by")), said

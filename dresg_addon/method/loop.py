@@ -153,6 +153,7 @@ def stylize(
         run.fit(stage, targets)  # Eqs. 16-20: multi-view fitting, PCGrad-fused colour gradients
         release_free_memory()
         run.feed_back(stage)  # Algorithm 1, last line: re-encode the fitted renders
+        run.emphasize_marks(stage)  # the last stage fitted again, asking for the marks the splats drew weaker
         if run.finish_stage(stage):  # log, checkpoint, live update; True: the early stop
             break
     run.post_stage()  # covariance colour transfer toward the style, then fitting to it
@@ -241,6 +242,7 @@ class _StageWork:
     images: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     losses: list[float] = field(default_factory=list)
     renders: list = field(default_factory=list)  # the views before the fit, then after it
+    targets: list = field(default_factory=list)  # what the fit was asked for (the last stage's second fit asks again)
     painted: ViewsInTurn | None = None  # ink: the views' painting in turn of the stage's proposals
     fields: list = field(default_factory=list)  # where in the painting each view's proposal comes from (marks.py)
     closure: dict = field(default_factory=dict)  # target gap, fit residual, optimum, share closed, movement
@@ -640,21 +642,29 @@ class Stylization:
         n = stage.index
         self.medium.at_stage(self.backend.full_detail(stage))
         self.work.closure = self._fit(targets, n, "fit", f"stage {n}, fit step")
-        if self.plan.marks_emphasis > 0 and self.carries_marks(stage) and self.entry.stroke_sigma is not None:
-            self.work.closure = self._emphasize_marks(targets, n)
+        self.work.targets = targets
         self.work.fitted_seconds = time.perf_counter() - self.work.started
         feedback = "style distance, re-encoding the fitted views" if self.plan.ablation.feedback else "style distance"
         self.hooks.report(n, 0, 1, "feedback", float("nan"), feedback)
 
-    def _emphasize_marks(self, targets: list[torch.Tensor], stage: int) -> dict:
-        """The stage's fit again, each view's marks finer than ``Plan.emphasis_width`` stroke scales asked for as much
-        more as the first fit lost (marks.emphasis_gains): a colour per splat draws a share of them."""
+    def emphasize_marks(self, stage: Stage) -> None:
+        """The last stage's fit again (the one that stops, or the schedule's last), each view's marks finer than
+        ``Plan.emphasis_width`` stroke scales asked for as much more as the first fit lost (marks.emphasis_gains): a
+        colour per splat, shared by the views, draws a share of them. After the stop's decision, which so compares
+        one fit with another (a second fit's gain in the style distance read as progress ran a stage more)."""
+        n, work = stage.index, self.work
+        last = bool(work.stop_reason) or n == len(self.stages)
+        if not (last and self.plan.marks_emphasis > 0 and self.carries_marks(stage) and self.entry.stroke_sigma):
+            return
         scale = self.fit_scale()
         sigma = self.plan.emphasis_width * self.entry.stroke_sigma(self.config.stroke_size) * scale
-        painting = painting_band_deviation(self.work.fields[0].source, sigma / scale)
-        gains = emphasis_gains(targets, self.work.renders, self.alphas, sigma, painting, self.plan.marks_emphasis)
+        painting = painting_band_deviation(work.fields[0].source, sigma / scale)
+        gains = emphasis_gains(work.targets, work.renders, self.alphas, sigma, painting, self.plan.marks_emphasis)
         self.hooks.say(f"marks emphasised where the splats drew them weaker: gain {min(gains):.2f}-{max(gains):.2f}")
-        return self._fit(emphasized(targets, self.alphas, gains, sigma), stage, "fit", f"stage {stage}, fit step")
+        if max(gains) <= 0.0:  # the first fit drew what the painting holds: the same fit again would change nothing
+            return
+        work.closure = self._fit(emphasized(work.targets, self.alphas, gains, sigma), n, "fit", f"stage {n}, fit step")
+        work.distance = self.style_distance(work.renders)
 
     def _fit(self, targets, stage: int, phase: str, where: str, start: torch.Tensor | None = None) -> dict:
         """Fit ``targets`` (solve or Adam steps; the solve from ``start``, default the current colours); how much of
