@@ -663,7 +663,9 @@ class Stylization:
         self.hooks.say(f"marks emphasised where the splats drew them weaker: gain {min(gains):.2f}-{max(gains):.2f}")
         if max(gains) <= 0.0:  # the first fit drew what the painting holds: the same fit again would change nothing
             return
+        started = time.perf_counter()
         work.closure = self._fit(emphasized(work.targets, self.alphas, gains, sigma), n, "fit", f"stage {n}, fit step")
+        work.fitted_seconds += time.perf_counter() - started  # the log's fit time holds both fits
         work.distance = self.style_distance(work.renders)
 
     def _fit(self, targets, stage: int, phase: str, where: str, start: torch.Tensor | None = None) -> dict:

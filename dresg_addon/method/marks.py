@@ -18,8 +18,8 @@ the strokes sit on the surface and keep their length; where no view's field sees
 of the splat drawn most there, moved by the pixel's place against that splat's centre.
 
 The fit sees a target through the splats, a colour each and shared by the views, so it draws a share of the marks
-finer than about half a stroke; on the stages that carry marks the fit runs again with that band asked for as much
-more as the first fit lost, up to the painting's own strength (:func:`emphasis_gains`, :func:`emphasized`).
+finer than about half a stroke; the last stage, if it carries marks, is fitted again with that band asked for as
+much more as the first fit lost, up to the painting's own strength (:func:`emphasis_gains`, :func:`emphasized`).
 
 What the painting's raw pixels do not hold (the scene's forms and light, the palette's regions) is in the
 proposals' coarse bands, which the views agree on; so each view's target keeps its coarse bands and takes its fine
