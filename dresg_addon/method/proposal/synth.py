@@ -10,8 +10,7 @@ a pyramid level and a patch size is:
 2. robust aggregation: X~ = argmin_X sum_ij ||R_ij X - z_ij||^r by IRLS, weights ||R_ij X - z_ij||^(r-2)
    (:func:`robust_aggregate`);
 3. content fusion, below the stroke scale only: X = X~ + W / (1 + W) (blur(C') - blur(X~)), C' the content
-   colour-transferred to the style, W a constant plus the edge strength of the view's rendered depth (the scene's
-   outlines and creases; the content's own edges without a depth: :func:`edge_structure`), the blur a Gaussian of
+   colour-transferred to the style, W a constant plus the content's edge strength, the blur a Gaussian of
    ``content_sigma`` pixels (:func:`fuse_content`, :func:`content_weight_map`). The scene's forms, regions
    and light come through where Elad and Milanfar's (X~ + W C') / (1 + W) brings them; the capture's own
    texture finer than the strokes (a knit cloth, a checkerboard) does not, so the texture there is the
@@ -437,33 +436,15 @@ def fill_uncovered(image: torch.Tensor, coverage: torch.Tensor, sigma: float) ->
     return torch.where(mask > 0, image, smooth)
 
 
-def _gradient_magnitude(image: torch.Tensor) -> torch.Tensor:  # [H, W] -> [H, W], central differences
-    gy = torch.zeros_like(image)
-    gx = torch.zeros_like(image)
-    gy[1:-1] = (image[2:] - image[:-2]) / 2.0
-    gx[:, 1:-1] = (image[:, 2:] - image[:, :-2]) / 2.0
-    return torch.sqrt(gx.square() + gy.square())
-
-
-def edge_structure(content: torch.Tensor, depth: torch.Tensor | None) -> torch.Tensor:  # -> [C, H, W]
-    """The image whose edges set the fusion's weight (:func:`content_weight_map`). With the view's rendered ``depth``
-    [H, W] (0: nothing, taken as 1.5 times the farthest depth, so a silhouette is an edge): the gradient magnitude of
-    the inverse depth, which is affine in the pixel's coordinates on a plane, so its edges are the scene's outlines
-    and creases and none lie on a flat surface, whatever its slant. Without a depth, the ``content`` [3, H, W] itself,
-    whose edges are also the capture's texture: the demo's checkerboard came back as the proposals' regions, its
-    squares pulled in as outlines."""
-    if depth is None:
-        return content
-    depth = depth.float()
-    far = 1.5 * float(depth.max()) if bool((depth > 0).any()) else 1.0
-    inverse = 1.0 / torch.where(depth > 0, depth, torch.full_like(depth, far)).clamp_min(1e-6)
-    return _gradient_magnitude(inverse)[None]
-
-
-def content_weight_map(structure: torch.Tensor, settings: SynthSettings) -> torch.Tensor:  # [C, H, W] -> [H, W]
-    """W = w_c (edge_floor + edge_gain x edge), edge the blurred gradient magnitude of the channels' mean of
-    ``structure`` (:func:`edge_structure`), divided by its 99th percentile and clipped to [0, 1] (1 on strong edges)."""
-    magnitude = _gaussian_blur(_gradient_magnitude(structure.mean(0))[None], EDGE_SIGMA)[0]
+def content_weight_map(content: torch.Tensor, settings: SynthSettings) -> torch.Tensor:  # [3, H, W] -> [H, W]
+    """W = w_c (edge_floor + edge_gain x edge), edge the blurred gradient magnitude of the content's
+    luminance, divided by its 99th percentile and clipped to [0, 1] (1 on strong edges)."""
+    luma = content.mean(0)
+    gy = torch.zeros_like(luma)
+    gx = torch.zeros_like(luma)
+    gy[1:-1] = (luma[2:] - luma[:-2]) / 2.0
+    gx[:, 1:-1] = (luma[:, 2:] - luma[:, :-2]) / 2.0
+    magnitude = _gaussian_blur(torch.sqrt(gx.square() + gy.square())[None], EDGE_SIGMA)[0]
     scale = torch.quantile(magnitude.reshape(-1)[:: max(1, magnitude.numel() // 65536)], 0.99)
     edge = (magnitude / scale.clamp_min(1e-6)).clamp(0.0, 1.0)
     return settings.content_weight * (settings.edge_floor + settings.edge_gain * edge)
@@ -636,7 +617,6 @@ class SynthBackend(ProposalBackend):
 
     name = "synth"
     takes_guides = True
-    takes_depth = True
 
     def __init__(self, settings: SynthSettings | None = None, **overrides):
         known = {f.name for f in fields(SynthSettings)}
@@ -722,9 +702,9 @@ class SynthBackend(ProposalBackend):
             style_key, fit_color_map(renders, style, covers, s.histogram_matching), content_map, content_key
         )
 
-    def _content(self, content, style, coverage, keys: tuple[bytes, bytes], level: int, depth=None):
+    def _content(self, content: torch.Tensor, style: torch.Tensor, coverage, keys: tuple[bytes, bytes], level: int):
         """(blur(C'), W) at ``level``: the content colour-transferred to the style and low-passed at the content
-        sigma (in the level's pixels), and the fusion weight map (from the depth's edges when given)."""
+        sigma (in the level's pixels), and the fusion weight map."""
         stage = self._stage if self._stage is not None and self._stage.style_key == keys[0] else None
         key = (*keys, level, stage is not None)
         cached = self._contents.get(key)
@@ -734,8 +714,7 @@ class SynthBackend(ProposalBackend):
             else:
                 transferred = downsample(self._style_colors(content, style, coverage, keys[0]), level)
             # Edges at a structural scale (object outlines and shading, not the photo's texture).
-            edge_level = max(level, min(self.settings.edge_level, self.settings.max_levels - 1))
-            structure = downsample(edge_structure(content, depth), edge_level)
+            structure = downsample(content, max(level, min(self.settings.edge_level, self.settings.max_levels - 1)))
             weight = upsample(content_weight_map(structure, self.settings)[None], *transferred.shape[1:])[0]
             cached = (low_pass(transferred, self._sigma(level)), weight)
             self._contents[key] = cached
@@ -773,7 +752,6 @@ class SynthBackend(ProposalBackend):
         content_image: torch.Tensor | None,  # [3, H, W]
         coverage: torch.Tensor | None = None,  # [H, W] render alpha
         guide: tuple[torch.Tensor, torch.Tensor] | None = None,  # ([3, H, W] image, [H, W] weight)
-        depth: torch.Tensor | None = None,  # [H, W] the view's rendered depth (0: nothing): the fusion's edges
     ) -> tuple[torch.Tensor, list[float]]:
         """``stage.updates`` synthesis passes (Algorithm 1, lines 3-5); returns the proposal and the pass energies.
 
@@ -797,19 +775,10 @@ class SynthBackend(ProposalBackend):
                 self._check_image(guide[0], "guide"),
                 guide[1].detach().float().reshape(height, width).clamp_min(0.0),
             )
-        if depth is not None:
-            depth = depth.detach().float().reshape(height, width)
-            if not torch.isfinite(depth).all():
-                raise NumericalError("the synth backend got a depth map with non-finite values")
         levels = min(pyramid_levels(height, width, s), pyramid_levels(*style.shape[1:], s))
         entry = ladder_entry(stage)
         plan = pass_scales(entry, stage.updates, levels, s)
-        references = (
-            content,
-            coverage if coverage is not None else torch.zeros(0),
-            *(() if depth is None else (depth,)),
-        )
-        keys = (_digest(style), _digest(*references))
+        keys = (_digest(style), _digest(content, coverage if coverage is not None else torch.zeros(0)))
         # Colours first (Elad and Milanfar: colour transfer before synthesis), then the passes, coarse to fine;
         # going to a finer level upsamples the estimate, whose detail the finer patches then synthesize.
         level = plan[0][0]
@@ -828,21 +797,21 @@ class SynthBackend(ProposalBackend):
                 x = upsample(x, height // 2**level, width // 2**level)
             generator = _generator(s.seed, "pass", stage.index, stage.stages, j, keys[1])
             noise = s.noise * math.sqrt(1.0 - entry) if j == 0 else 0.0
-            x, energy = self._pass(x, style, content, coverage, keys, level, size, noise, generator, guide, depth)
+            x, energy = self._pass(x, style, content, coverage, keys, level, size, noise, generator, guide)
             energies.append(energy)
         self._field_of = (style, height, width)
         # A stage that ends at a coarse level proposes its coarse bands only: none of the render's finer texture
         # (the capture's) goes back on; the finer stages paint it from the painting.
         x = upsample(x, height, width)
         if s.light_weight > 0.0:
-            content_low, _ = self._content(content, style, coverage, keys, 0, depth)
+            content_low, _ = self._content(content, style, coverage, keys, 0)
             x = hold_light(x, content_low, s.light_weight, self._sigma(0))
         if s.light_weight > 0.0 or s.final_match:
             x = self._style_colors(x, style, coverage, keys[0])
         keep = 1.0 if coverage is None else coverage_weight(coverage)[None]
         return (render + keep * (x - render)).clamp(0.0, 1.0), energies
 
-    def _pass(self, estimate, style, content, coverage, keys, level, size, noise, generator, guide=None, depth=None):
+    def _pass(self, estimate, style, content, coverage, keys, level, size, noise, generator, guide=None):
         """One EM pass on ``estimate`` (at ``level``) with ``size`` patches: (new estimate, energy before it)."""
         s = self.settings
         h, w = estimate.shape[1:]
@@ -868,7 +837,7 @@ class SynthBackend(ProposalBackend):
         matches = library.patches(rows)
         energy = (extract_patches(filled, index) - matches).norm(dim=1).pow(s.robust_power).mean() / matches.shape[1]
         synthesis = robust_aggregate(estimate, matches, index, s.robust_power, s.irls_iterations)
-        content_low, weight = self._content(content, style, coverage, keys, level, depth)
+        content_low, weight = self._content(content, style, coverage, keys, level)
         fused = fuse_content(synthesis, content_low, weight, self._sigma(level))
         if guide is not None:
             # The guide's strokes hold against this view's own, in proportion to its weight (1: an even mix).
