@@ -813,8 +813,9 @@ def test_a_guide_holds_the_synthesis_to_it_where_it_has_weight():
     assert float((held - free)[:, :, right].abs().mean()) < float((held - free)[:, :, left].abs().mean())
     assert len(energies) == STAGE.updates and torch.isfinite(held).all()
     unweighted, _ = backend.propose(state, STAGE, style, state, guide=(guide, torch.zeros(H, W)))
-    # Equal but for rounding ((1 + W) X / (1 + W)), which the colour matching spreads: up to 1e-4 over seeds 0-5.
-    torch.testing.assert_close(unweighted, free, atol=2e-4, rtol=0)
+    # Equal but for rounding ((1 + W) X / (1 + W)), which the colour matching spreads: up to 1e-4 over seeds 0-5 on
+    # an AMD EPYC, 2.5e-4 on an Intel Xeon (its vector units round differently).
+    torch.testing.assert_close(unweighted, free, atol=1e-3, rtol=0)
     bad = guide.clone()
     bad[0, 0, 0] = float("nan")
     with pytest.raises(NumericalError, match="guide"):
