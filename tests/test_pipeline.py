@@ -974,3 +974,26 @@ def test_pixel_widths_are_the_splats_screen_sigma_where_drawn_and_zero_elsewhere
     assert torch.allclose(width[drawn], torch.full_like(width[drawn], expected), rtol=1e-4)
     assert bool((width[~drawn] == 0).all())
     assert splat_footprint(renderer) == pytest.approx(expected, rel=1e-4)
+
+
+def test_each_view_is_proposed_with_its_own_rendered_depth(monkeypatch):
+    """The synth backend's fusion takes its edges from the view's rendered depth (outlines, not painted-on texture):
+    each view's, at the proposal size, 0 off the scene and the camera's distance to the sphere on it."""
+    from dresg_addon.method.proposal.synth import SynthBackend
+
+    seen = []
+    propose = SynthBackend.propose
+
+    def spy(self, *args, depth=None, **kwargs):
+        seen.append(depth)
+        return propose(self, *args, depth=depth, **kwargs)
+
+    monkeypatch.setattr(SynthBackend, "propose", spy)
+    cameras = ring_cameras(3)
+    run(cameras=cameras, style=textured_style(), config=TINY.with_(stages=1, updates_per_stage=1))
+    assert len(seen) == 3 and all(d is not None and d.shape == (24, 32) for d in seen)
+    for depth, camera in zip(seen, cameras):
+        on = depth > 0
+        assert 0 < int(on.sum()) < on.numel() and bool(torch.isfinite(depth).all())
+        distance = float(np.linalg.norm(np.asarray(camera.center)))
+        assert distance - 1.5 < float(depth[on].min()) <= float(depth[on].max()) < distance + 1.5

@@ -18,9 +18,11 @@ from dresg_addon.method.proposal.synth import (
     aggregate_patches,
     build_library,
     content_weight_map,
+    edge_strength,
     extract_patches,
     fill_uncovered,
     fuse_content,
+    fusion_edges,
     hold_light,
     irls_weights,
     ladder_entry,
@@ -427,17 +429,85 @@ def test_content_weight_map_bounds_and_edges():
     high = settings.content_weight * (settings.edge_floor + settings.edge_gain)
     step = torch.full((3, 32, 32), 0.2)
     step[:, :, 16:] = 0.8
-    weight = content_weight_map(step, settings)
+    weight = content_weight_map(edge_strength(step), settings)
     assert weight.shape == (32, 32)
     assert float(weight.min()) >= low - 1e-6 and float(weight.max()) <= high + 1e-6
     assert float(weight[16, 15]) > float(weight[16, 2]) + 0.5 * (high - low)
     torch.testing.assert_close(weight[16, 2], torch.tensor(low), atol=1e-6, rtol=0)
     textured = torch.rand(3, 40, 30, generator=torch.Generator().manual_seed(13))
-    weight = content_weight_map(textured, settings)
+    weight = content_weight_map(edge_strength(textured), settings)
     assert float(weight.min()) >= low - 1e-6 and float(weight.max()) <= high + 1e-6
-    flat = content_weight_map(torch.full((3, 20, 24), 0.4), settings)
+    flat = content_weight_map(edge_strength(torch.full((3, 20, 24), 0.4)), settings)
     assert bool(torch.isfinite(flat).all())
     torch.testing.assert_close(flat, torch.full((20, 24), low), atol=1e-6, rtol=0)
+
+
+def plane_with_a_box(h: int = H, w: int = W) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(content [3, h, w], depth [h, w], box [h, w] bool): a ground plane seen at a slant (its inverse depth affine in
+    the pixel's row) with a checkerboard of 8-pixel squares painted on it, and a box standing in front of it."""
+    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    depth = 1.0 / (0.05 + 0.01 * y)  # 20 at the top row, 1.7 at the bottom
+    box = (y >= 20) & (y < 40) & (x >= 44) & (x < 60)
+    depth = torch.where(box, torch.full_like(depth, 2.0), depth)
+    checker = ((y // 8 + x // 8) % 2).float()
+    content = torch.where(box, torch.full_like(checker, 0.5), 0.2 + 0.6 * checker).expand(3, -1, -1).contiguous()
+    return content, depth, box
+
+
+def test_fusion_edges_need_the_luminance_and_the_depth_to_break_together():
+    """The box's outline (a colour and a depth edge) is an edge; the checkerboard painted on the plane (colour only)
+    is not, nor is a depth edge where the colour runs on (a dark capture's background)."""
+    settings = SynthSettings()
+    low = settings.content_weight * settings.edge_floor
+    gain = settings.content_weight * settings.edge_gain
+    content, depth, box = plane_with_a_box()
+    from_luminance = content_weight_map(fusion_edges(content, None, 0), settings)
+    from_both = content_weight_map(fusion_edges(content, depth, 0), settings)
+    squares_edge = (slice(4, 16), slice(6, 10))  # the plane's squares meet at column 8, far from the box
+    assert float(from_luminance[squares_edge].mean()) > low + 0.5 * gain  # luminance takes the squares for outlines
+    assert float(from_both[squares_edge].max()) < low + 0.05 * gain  # the plane's depth has none there
+    outline = (slice(24, 36), slice(42, 46))  # the box's left side
+    assert float(from_both[outline].mean()) > low + 0.5 * gain
+    same_colour = torch.full_like(content, 0.5)  # the box's depth edge, but no colour edge anywhere
+    torch.testing.assert_close(
+        content_weight_map(fusion_edges(same_colour, depth, 0), settings), torch.full((H, W), low)
+    )
+    assert fusion_edges(content, depth, 1).shape == (H // 2, W // 2)
+    for h, w in ((1, 1), (1, 5), (2, 2)):  # too small for an outline: no edges, no error
+        assert not bool(fusion_edges(content[:, :h, :w], depth[:h, :w], 0).any())
+    # The extremes: nothing seen, a single depth, a range of 1e12, a depth that fills only a pixel.
+    nothing, one = torch.zeros(H, W), torch.full((H, W), 3.0)
+    wide = torch.where(box, torch.full_like(depth, 1e-6), torch.full_like(depth, 1e6))
+    pixel = torch.zeros(H, W)
+    pixel[10, 10] = 5.0
+    for extreme in (nothing, one, wide, pixel):
+        weight = content_weight_map(fusion_edges(content, extreme, 0), settings)
+        assert bool(torch.isfinite(weight).all()) and float(weight.min()) >= low - 1e-6
+        assert float(weight.max()) <= low + gain + 1e-6
+    for flat in (nothing, one):
+        torch.testing.assert_close(
+            content_weight_map(fusion_edges(content, flat, 0), settings), torch.full((H, W), low)
+        )
+
+
+def test_with_the_views_depth_a_proposal_keeps_less_of_a_checkerboard_painted_on_a_plane():
+    content, depth, box = plane_with_a_box()
+    painting = style_image()
+    plane = ~box
+
+    def squares_in(image):  # correlation of the image's coarse band with the squares', on the plane
+        coarse = [low_pass(im, 2.0).mean(0)[plane] for im in (image, content)]
+        return float(torch.corrcoef(torch.stack(coarse))[0, 1])
+
+    backend = SynthBackend()
+    state = torch.full((3, H, W), 0.5)  # the squares come in through the content's fusion alone
+    with_depth, _ = backend.propose(state, STAGE, painting, content, depth=depth)
+    without, _ = backend.propose(state, STAGE, painting, content)
+    assert bool(torch.isfinite(with_depth).all())
+    assert squares_in(with_depth) < 0.15 and squares_in(without) > 0.3
+    assert torch.equal(backend.propose(state, STAGE, painting, content, depth=depth)[0], with_depth)  # cached apart
+    with pytest.raises(NumericalError):
+        backend.propose(state, STAGE, painting, content, depth=torch.full((H, W), float("nan")))
 
 
 def test_fuse_content_formula():

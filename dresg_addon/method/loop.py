@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from ..scene.camera import Camera, view_name
 from ..scene.gaussians import GaussianScene, blend_colors
@@ -497,6 +498,12 @@ class Stylization:
         self.fitter.covered = [a > COVERED for a in self.alphas]  # its steps' RMSE over covered pixels, for progress
         self.brightness = scene_brightness(self.contents, self.coverages)
         self.backend = self.entry.make(self.config, self.plan, self.brightness, self.device)
+        self.depths = None
+        if self.backend.takes_depth:
+            with torch.no_grad():
+                depths = [self.renderer.depth(v, self.state).detach().float() for v in range(len(self.cameras))]
+            # Nearest, not bilinear: a blend of a silhouette's depth with the background's 0 is no depth at all.
+            self.depths = [F.interpolate(d[None, None], size=self.size, mode="nearest")[0, 0] for d in depths]
         self.hooks.model.set_stage_costs([self.backend.relative_cost(s, *self.size) for s in self.stages])
         if not self.config.optimize_geometry:  # solved fits: the first takes more rounds, the best views more solves
             best_views_fine = self.plan.best_views > 0 and not self.plan.best_views_coarse
@@ -558,6 +565,8 @@ class Stylization:
             self.hooks.report(stage.index, i, views, "proposal", float("nan"), message)
             guide = guides.guide(i)
             kwargs = {"guide": guide} if guide is not None else {}
+            if self.depths is not None:
+                kwargs["depth"] = self.depths[i]
             self.states[i], energies = self.backend.propose(
                 self.states[i], stage, self.style, self.contents[i], self.coverages[i], **kwargs
             )

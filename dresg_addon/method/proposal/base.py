@@ -78,6 +78,9 @@ class ProposalBackend(ABC):
     # Whether ``propose`` keeps to a guide (what earlier views proposed, seen from this view), so that
     # views agree; the loop builds guides only for backends that use them.
     takes_guides: bool = False
+    # Whether ``propose`` takes the view's rendered depth (``depth=``, [H, W] at the proposal size, 0 where nothing is
+    # seen): the scene's outlines, which a capture's texture painted on a flat surface does not have.
+    takes_depth: bool = False
     # Where in the painting the last proposal's pixels come from (synth.PaintingField), for a backend that copies
     # the painting's pixels; None for one that does not (its marks cannot be carried by the splats).
     last_field = None
