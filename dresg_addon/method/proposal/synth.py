@@ -12,11 +12,12 @@ a pyramid level and a patch size is:
 3. content fusion, below the stroke scale only: X = X~ + W / (1 + W) (blur(C') - blur(X~)), C' the content
    colour-transferred to the style, W a constant plus the edge strength where the content's luminance and the
    view's rendered depth both have an edge (the scene's outlines and creases, not a texture painted on a surface:
-   :func:`fusion_edges`), the blur a Gaussian of ``content_sigma`` pixels (:func:`fuse_content`, :func:`content_weight_map`). The scene's forms, regions
-   and light come through where Elad and Milanfar's (X~ + W C') / (1 + W) brings them; the capture's own
-   texture finer than the strokes (a knit cloth, a checkerboard) does not, so the texture there is the
-   painting's. Fused at every band, it survived in the painting's palette: on the bonsai x Starry Night
-   (``preview``, novel views) the capture's high-pass correlated 0.64 with the result, 0.24 at sigma 3;
+   :func:`fusion_edges`), the blur a Gaussian of ``content_sigma`` pixels (:func:`fuse_content`,
+   :func:`content_weight_map`). The scene's forms, regions and light come through where Elad and Milanfar's
+   (X~ + W C') / (1 + W) brings them; the capture's own texture finer than the strokes (a knit cloth, a
+   checkerboard) does not, so the texture there is the painting's. Fused at every band, it survived in the
+   painting's palette: on the bonsai x Starry Night (``preview``, novel views) the capture's high-pass
+   correlated 0.64 with the result, 0.24 at sigma 3;
 4. colour transfer of X to the style: covariance transfer, then histogram matching along the style's
    colour principal axes (``color_transfer.match_color_histograms``).
 
