@@ -21,7 +21,17 @@ from dresg_addon.method.marks import (
     painting_band_deviation,
     vote_view,
 )
-from dresg_addon.method.proposal.synth import PaintingField, SynthBackend, low_pass
+from dresg_addon.method.proposal.synth import (
+    PaintingField,
+    SynthBackend,
+    _Matches,
+    _nearest_centre,
+    _PatchColors,
+    cheapest_paths,
+    low_pass,
+    patch_grid,
+    seam_cut,
+)
 from dresg_addon.method.schedule import stage_timesteps
 from dresg_addon.raster.rasterizer import render_scene
 from dresg_addon.scene.camera import Camera, look_at
@@ -64,6 +74,98 @@ def test_a_coarse_pass_gives_a_field_at_full_resolution_and_none_where_nothing_i
     assert field.rows.shape == (56, 72) and not bool(field.valid[:, :4].any()) and bool(field.valid[:, 40:].all())
     assert int(field.rows.max()) < 2 * style.shape[1] and int(field.cols.max()) < style.shape[2]
     assert int(field.rows.min()) >= 0 and int(field.cols.min()) >= 0
+
+
+def test_the_cheapest_path_follows_the_valley_moves_one_column_a_row_and_keeps_out_of_barred_columns():
+    valley = [4, 4, 5, 6, 6, 5, 5, 4]
+    error = torch.rand(2, 8, 9, generator=torch.Generator().manual_seed(3)) + 0.5
+    for row, column in enumerate(valley):
+        error[0, row, column] = 0.0
+    error[1] = 1.0  # flat: straight down its first column that is allowed
+    error[1, :, :3] = torch.inf
+    paths = cheapest_paths(error)
+    assert paths[0].tolist() == valley and paths[1].tolist() == [3] * 8
+    assert cheapest_paths(torch.zeros(1, 1, 1)).tolist() == [[0]]  # one row, one place
+
+
+def two_patches(agree: list[int]) -> _Matches:
+    """Two 8x8 patches side by side (corners at columns 0 and 4 of a 8x12 image) copying a random painting whose two
+    copies agree in each row only at columns agree[row] and agree[row] + 1 of their overlap (4-7)."""
+    source = torch.rand(3, 8, 40, generator=torch.Generator().manual_seed(4))
+    for row, column in enumerate(agree):  # the second patch shows source column 16 + x at its pixel x
+        source[:, row, 16 + column : 18 + column] = source[:, row, column : column + 2]
+    flat = torch.cat([source, source.flip(-1)], 1).reshape(3, -1)
+    ys, xs = torch.tensor([0]), torch.tensor([0, 4])
+    return _Matches(
+        0, 8, ys, xs, torch.ones(2, dtype=torch.bool), torch.tensor([0, 20]), 40, flat, torch.zeros(3, 8, 12)
+    )
+
+
+def test_the_seam_between_two_patches_runs_where_their_colours_agree_not_on_a_straight_line():
+    agree = [4, 4, 5, 6, 6, 5, 5, 4]
+    labels = seam_cut(two_patches(agree))
+    columns = torch.arange(12)[None]
+    expected = (columns >= torch.tensor(agree)[:, None] + 1).long()  # the first patch up to the agreeing pair
+    assert torch.equal(labels, expected)
+
+
+def test_the_cut_gives_every_pixel_a_kept_patch_that_covers_it_on_any_grid():
+    g = torch.Generator().manual_seed(5)
+    for _ in range(60):
+        size = int(torch.randint(1, 12, (1,), generator=g))
+        h, w = (int(v) for v in torch.randint(size, 40, (2,), generator=g))
+        gap = max(1, round(0.6 * size))
+        ys, xs = patch_grid(h, w, size, gap, tuple(int(v) for v in torch.randint(0, gap, (2,), generator=g)))
+        kept = torch.rand(ys.numel() * xs.numel(), generator=g) > 0.2
+        source_h, source_w = h + 5, w + 7
+        rows = torch.randint(0, 2 * source_h - size + 1, (int(kept.sum()),), generator=g)
+        corners = rows * source_w + torch.randint(0, source_w - size + 1, rows.shape, generator=g)
+        source = torch.rand(3, 2 * source_h * source_w, generator=g)
+        matched = _Matches(0, size, ys, xs, kept, corners, source_w, source, torch.rand(3, h, w, generator=g))
+        labels = seam_cut(matched)
+        grid = torch.nonzero(kept)[:, 0][labels.clamp_min(0)]
+        top, left = ys[grid // xs.numel()], xs[grid % xs.numel()]
+        y, x = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+        chosen = labels >= 0
+        assert bool(((top <= y) & (y < top + size) & (left <= x) & (x < left + size))[chosen].all())
+        if bool(kept.all()):
+            assert bool(chosen.all())
+
+
+def test_every_pixel_takes_a_kept_patch_that_covers_it_and_the_cut_seams_cost_less_than_the_nearest_centres():
+    style = painting(seed=1)
+    content = painting(56, 72, seed=2)
+    coverage = torch.ones(56, 72)
+    coverage[:, :20] = 0.0
+    backend = SynthBackend(patch_sizes=(13,), noise=0.0)
+    backend.propose(content, FINE, style, content, coverage)
+    matched = backend._matched
+    labels = seam_cut(matched)
+    kept = torch.nonzero(matched.kept)[:, 0]
+    y, x = torch.meshgrid(torch.arange(56), torch.arange(72), indexing="ij")
+    grid = kept[labels.clamp_min(0)]
+    top, left = matched.ys[grid // matched.xs.numel()], matched.xs[grid % matched.xs.numel()]
+    chosen = labels >= 0
+    assert bool(chosen[:, 24:].all()) and not bool(chosen[:, :4].any())
+    assert bool(((top <= y) & (y < top + 13) & (left <= x) & (x < left + 13))[chosen].all())
+
+    colors = _PatchColors(matched)
+
+    def seam_cost(choice):  # Kwatra's cost summed over the field's seams
+        total = 0.0
+        for dy, dx in ((0, 1), (1, 0)):
+            a, b = choice[: 56 - dy, : 72 - dx], choice[dy:, dx:]
+            seam = (a != b) & (a >= 0) & (b >= 0)
+            a, b = a.clamp_min(0), b.clamp_min(0)
+            for yy, xx in ((y[: 56 - dy, : 72 - dx], x[: 56 - dy, : 72 - dx]), (y[dy:, dx:], x[dy:, dx:])):
+                total += float(((colors.at(a, yy, xx) - colors.at(b, yy, xx)).norm(dim=0) * seam).sum())
+        return total
+
+    slot = torch.full((matched.kept.numel(),), -1, dtype=torch.long)
+    slot[matched.kept] = torch.arange(kept.numel())
+    rows, cols = _nearest_centre(matched.ys, 13, 56), _nearest_centre(matched.xs, 13, 72)
+    nearest = slot[rows[:, None] * matched.xs.numel() + cols[None]]  # what the field took before the cut
+    assert seam_cost(labels) < seam_cost(nearest)
 
 
 def translation_field(height: int, width: int, source: torch.Tensor, shift: tuple[int, int]) -> PaintingField:

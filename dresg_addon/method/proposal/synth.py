@@ -78,6 +78,11 @@ How the paper's quantities map onto it (Sec. 4.1, Algorithm 1 lines 3-5):
 - gamma_k, the residual targets, the multi-view fitting with PCGrad and the feedback are the pipeline's,
   unchanged.
 
+Where the proposal comes from (``last_field``, for the splats to carry the marks: ``marks.py``): each pixel of the
+last pass takes one of the matched patches that cover it, the boundaries between neighbouring patches cut where
+their colours agree (:func:`seam_cut`: image quilting's minimum error boundary cut, Efros and Freeman 2001, with
+Kwatra et al.'s seam cost, 2003), not on the straight line half-way between their centres.
+
 Alpha-aware: with a coverage map (the render's alpha), only covered pixels take part in colour statistics
 and matching (uncovered pixels are filled in smoothly from covered ones, and patches with no covered
 pixel are left out), and the proposal changes a pixel by ``color_transfer.coverage_weight`` of its alpha:
@@ -90,8 +95,10 @@ from __future__ import annotations
 import hashlib
 import math
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -576,14 +583,16 @@ class _Matches:
     kept: torch.Tensor  # [a b] bool
     corners: torch.Tensor  # [kept] flat index into the level's source, rows of ``width``
     width: int
+    source: torch.Tensor  # [3, 2 h w] the level's style and its mirror image, flattened (``StyleLibrary.source``)
+    synthesis: torch.Tensor  # [3, h, w] the pass's robust aggregate of the matched patches at the level
 
 
 @dataclass(frozen=True)
 class PaintingField:
     """Where in the painting each pixel of a proposal comes from: per pixel at the proposal size, a pixel of
     ``source`` (the painting as the backend was given it, its mirror image below it: [3, 2 Hs, Ws]); ``valid`` is
-    False where no matched patch covers the pixel. Each pixel takes the patch whose centre is nearest, so the field is
-    piecewise a translation, one per patch."""
+    False where no matched patch covers the pixel. Each pixel takes one of the patches that cover it, chosen by
+    :func:`seam_cut`, so the field is piecewise a translation, one per patch."""
 
     rows: torch.Tensor  # [H, W] long, in [0, 2 Hs)
     cols: torch.Tensor  # [H, W] long, in [0, Ws)
@@ -596,27 +605,151 @@ def _nearest_centre(starts: torch.Tensor, size: int, length: int) -> torch.Tenso
     return torch.bucketize(torch.arange(length, dtype=torch.float64), (centres[1:] + centres[:-1]) / 2.0)
 
 
+class _PatchColors:
+    """The colour each kept patch of a pass puts at any pixel of the level: its translation into the level's source
+    carried on past the patch's own pixels (clamped to the painting, or the mirror image, it copies from)."""
+
+    def __init__(self, matched: _Matches):
+        grid = torch.nonzero(matched.kept)[:, 0]
+        iy, ix = grid // matched.xs.numel(), grid % matched.xs.numel()
+        source_rows = matched.corners // matched.width
+        self.source_height = matched.source.shape[1] // (2 * matched.width)
+        self.half = (source_rows >= self.source_height).long() * self.source_height
+        self.shift_rows = source_rows - matched.ys[iy]
+        self.shift_cols = matched.corners % matched.width - matched.xs[ix]
+        self.source, self.width = matched.source, matched.width
+
+    def at(self, patch: torch.Tensor, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:  # [...] each -> [3, ...]
+        top = self.half[patch]
+        row = torch.minimum(torch.maximum(y + self.shift_rows[patch], top), top + self.source_height - 1)
+        col = (x + self.shift_cols[patch]).clamp(0, self.width - 1)
+        return self.source[:, row * self.width + col]
+
+
+def _color_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:  # [3, ...] each -> [...]
+    """Euclidean distance over the channels (``norm(dim=0)`` reduced the outer dimension 30x slower)."""
+    d = a - b
+    return (d[0].square() + d[1].square() + d[2].square()).sqrt()
+
+
+def cheapest_paths(
+    error: torch.Tensor,  # [B, L, S] the cost of the path at each place of each row
+    from_left: torch.Tensor | None = None,  # [B, L, S] the cost of reaching a place from the place before it
+    from_right: torch.Tensor | None = None,  # [B, L, S] ... from the place after it
+) -> torch.Tensor:  # [B, L] long in [0, S)
+    """For each of B cost surfaces, the path from its first row to its last, one place per row, moving at most one
+    place from row to row, whose summed cost is least (dynamic programming: Efros and Freeman 2001's minimum error
+    boundary cut). Infinite cost bars a place; ties keep the path straight."""
+    cost = error.double().numpy()  # a row at a time: numpy's small-array ops cost a tenth of torch's here
+    count, length, span = cost.shape
+    moving = from_left is not None
+    if moving:
+        left_cost, right_cost = from_left.double().numpy(), from_right.double().numpy()
+    total = cost[:, 0].copy()
+    back = np.zeros((count, length, span), dtype=np.int8)
+    left, right = np.full((count, span), np.inf), np.full((count, span), np.inf)
+    for t in range(1, length):
+        left[:, 1:], right[:, :-1] = total[:, :-1], total[:, 1:]
+        arrive_left = left + left_cost[:, t] if moving else left
+        arrive_right = right + right_cost[:, t] if moving else right
+        from_l = arrive_left < total  # strictly: ties keep the path straight
+        best = np.where(from_l, arrive_left, total)
+        from_r = arrive_right < best
+        back[:, t] = np.where(from_r, 2, from_l.astype(np.int8))  # 0: straight, 1: from the left, 2: from the right
+        total = np.where(from_r, arrive_right, best) + cost[:, t]
+    path = np.empty((count, length), dtype=np.int64)
+    path[:, -1] = total.argmin(1)
+    step = np.array([0, -1, 1])
+    rows = np.arange(count)
+    for t in range(length - 1, 0, -1):
+        path[:, t - 1] = path[:, t] + step[back[rows, t, path[:, t]]]
+    return torch.from_numpy(path)
+
+
+def _cut_ranges(starts: torch.Tensor, size: int, length: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """For each boundary between neighbouring patches along an axis, the first and last place a cut may take (the
+    pixels before it the first patch's, from it on the second's): inside both patches, and within half-way to the
+    nearest centres' neighbouring cuts, so that cuts never cross. The nearest centres' own place where there is no
+    room."""
+    owner = _nearest_centre(starts, size, length)
+    middle = torch.searchsorted(owner, torch.arange(1, starts.numel()))  # the nearest centres' cuts
+    ends = torch.cat([torch.tensor([0]), middle, torch.tensor([length])])
+    first = torch.maximum(starts[1:], (ends[:-2] + ends[1:-1] + 1) // 2)
+    last = torch.minimum(starts[:-1] + size, (ends[1:-1] + ends[2:]) // 2)
+    bad = first > last
+    return torch.where(bad, middle, first), torch.where(bad, middle, last)
+
+
+def _axis_cuts(
+    colors: _PatchColors,
+    patch_of: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],  # boundary b, row, place -> patch
+    first: torch.Tensor,  # [B]
+    last: torch.Tensor,  # [B]
+    rows: int,
+    length: int,  # of each row
+    transpose: bool,
+) -> torch.Tensor:  # -> [B, rows]: the cut's place in each row
+    """The least-cost cut of each boundary along one axis: Kwatra et al.'s seam cost (2003), how far apart the two
+    patches' colours are at the two pixels of each pair of neighbours the cut separates, along the row and, where
+    the cut moves, across the rows."""
+    count = first.numel()
+    if count == 0:
+        return torch.zeros(0, rows, dtype=torch.long)
+    span = int((last - first).max()) + 1
+    place = first[:, None] + torch.arange(span)[None]  # [B, S]
+    allowed = place <= last[:, None]
+    b = torch.arange(count)[:, None, None].expand(count, rows, span + 1)
+    r = torch.arange(rows)[None, :, None].expand(count, rows, span + 1)
+    p = (first[:, None, None] + torch.arange(-1, span)[None, None]).expand(count, rows, span + 1).clamp(0, length - 1)
+    a, c = patch_of(b, r, p), patch_of(b + 1, r, p)  # the patches before and after the boundary
+    y, x = (p, r) if transpose else (r, p)
+    present = (a >= 0) & (c >= 0)
+    apart = torch.where(present, _color_distance(colors.at(a.clamp_min(0), y, x), colors.at(c.clamp_min(0), y, x)), 0)
+    error = torch.where(allowed[:, None, :], apart[:, :, :-1] + apart[:, :, 1:], torch.inf)
+    # A cut that moves between rows puts the pixel it passes over on the other side of a seam across the rows.
+    crossed = torch.cat([torch.zeros_like(apart[:, :1]), apart[:, :-1] + apart[:, 1:]], 1)  # [B, rows, S + 1]
+    return first[:, None] + cheapest_paths(error, crossed[:, :, :-1], crossed[:, :, 1:])
+
+
+def seam_cut(matched: _Matches) -> torch.Tensor:  # -> [h, w] kept patch, -1: none
+    """Which of the matched patches that cover it each pixel of the pass's level takes: each boundary between
+    neighbouring patches cut where the two agree, by image quilting's minimum error boundary cut (Efros and Freeman
+    2001) with Kwatra et al.'s seam cost (2003). The columns' boundaries first, each a path down the image within the
+    two patches' overlap, the patches of each row of the grid its nearest centres'; then the rows' boundaries, a path
+    across, the patches of each column the ones the first cuts gave. The nearest centres cut every patch on a
+    straight line whatever it shows there, which the views carry over the surface as hard-edged trapezoids
+    (decision 021)."""
+    h, w = matched.synthesis.shape[1:]
+    slot = torch.full((matched.kept.numel(),), -1, dtype=torch.long)
+    slot[matched.kept] = torch.arange(int(matched.kept.sum()))
+    nx = matched.xs.numel()
+    colors = _PatchColors(matched)
+    grid_row = _nearest_centre(matched.ys, matched.size, h)  # [h]
+    first, last = _cut_ranges(matched.xs, matched.size, w)
+    column_cuts = _axis_cuts(colors, lambda b, r, p: slot[grid_row[r] * nx + b], first, last, h, w, transpose=False)
+    grid_col = torch.searchsorted(column_cuts.T.contiguous(), torch.arange(w).expand(h, w).contiguous(), right=True)
+    first, last = _cut_ranges(matched.ys, matched.size, h)
+    row_cuts = _axis_cuts(colors, lambda b, r, p: slot[b * nx + grid_col[p, r]], first, last, w, h, transpose=True)
+    grid_row = torch.searchsorted(row_cuts.T.contiguous(), torch.arange(h).expand(w, h).contiguous(), right=True).T
+    return slot[grid_row * nx + grid_col]
+
+
 def painting_field(matched: _Matches, style: torch.Tensor, height: int, width: int) -> PaintingField:
     """The :class:`PaintingField` of a pass's matches at ``height`` x ``width`` (the full resolution); ``style`` is the
     painting at full resolution [3, Hs, Ws]. A pass at a coarser level is scaled up: its pixels' coordinates times
     2^level, plus the full-resolution pixel's place inside the level's pixel."""
     scale = 2**matched.level
-    h, w = height // scale, width // scale
+    h, w = matched.synthesis.shape[1:]
     y = torch.arange(height).clamp_max(h * scale - 1) // scale
     x = torch.arange(width).clamp_max(w * scale - 1) // scale
-    iy, ix = _nearest_centre(matched.ys, matched.size, h)[y], _nearest_centre(matched.xs, matched.size, w)[x]
-    grid = iy[:, None] * matched.xs.numel() + ix[None, :]  # [H, W] patch of the full grid
-    slot = torch.full((matched.kept.numel(),), -1, dtype=torch.long)
-    slot[matched.kept] = torch.arange(int(matched.kept.sum()))
-    patch = slot[grid]
+    patch = seam_cut(matched)[y[:, None], x[None, :]]
     valid = patch >= 0
-    corner = matched.corners[patch.clamp_min(0)]
+    colors = _PatchColors(matched)
+    patch = patch.clamp_min(0)
+    mirrored = (colors.half[patch] > 0).long()
+    row = y[:, None] + colors.shift_rows[patch] - mirrored * colors.source_height
+    col = x[None, :] + colors.shift_cols[patch]
     style_height, style_width = style.shape[1:]
-    level_height = max(1, style_height // scale)  # the level's style: the source's upper half
-    source_rows = corner // matched.width
-    mirrored = (source_rows >= level_height).long()
-    row = source_rows - mirrored * level_height + (y - matched.ys[iy])[:, None]
-    col = corner % matched.width + (x - matched.xs[ix])[None, :]
     sub_y, sub_x = (torch.arange(height) - y * scale)[:, None], (torch.arange(width) - x * scale)[None, :]
     rows = (row * scale + sub_y).clamp(0, style_height - 1) + mirrored * style_height
     cols = (col * scale + sub_x).clamp(0, style_width - 1)
@@ -886,10 +1019,11 @@ class SynthBackend(ProposalBackend):
         # E-step: nearest style patches; M-step: robust aggregation, content fusion, colour transfer.
         queries = library.project(extract_patches(probe, index))
         rows = nearest_patches(queries, library.projected, s.search_chunk)
-        self._matched = _Matches(level, size, ys, xs, kept, library.corners[rows], library.width)
         matches = library.patches(rows)
         energy = (extract_patches(filled, index) - matches).norm(dim=1).pow(s.robust_power).mean() / matches.shape[1]
         synthesis = robust_aggregate(estimate, matches, index, s.robust_power, s.irls_iterations)
+        corners = library.corners[rows]
+        self._matched = _Matches(level, size, ys, xs, kept, corners, library.width, library.source, synthesis)
         content_low, weight = self._content(content, style, coverage, keys, level, depth)
         fused = fuse_content(synthesis, content_low, weight, self._sigma(level))
         if guide is not None:
