@@ -640,30 +640,33 @@ def cheapest_paths(
     """For each of B cost surfaces, the path from its first row to its last, one place per row, moving at most one
     place from row to row, whose summed cost is least (dynamic programming: Efros and Freeman 2001's minimum error
     boundary cut). Infinite cost bars a place; ties keep the path straight."""
-    cost = error.double().numpy()  # a row at a time: numpy's small-array ops cost a tenth of torch's here
-    count, length, span = cost.shape
+    # Row by row in numpy, each row's arrays contiguous: its small-array operations cost a tenth of torch's here.
+    cost = error.double().transpose(0, 1).contiguous().numpy()  # [L, B, S]
+    length, count, span = cost.shape
     moving = from_left is not None
     if moving:
-        left_cost, right_cost = from_left.double().numpy(), from_right.double().numpy()
-    total = cost[:, 0].copy()
-    back = np.zeros((count, length, span), dtype=np.int8)
+        left_cost = from_left.double().transpose(0, 1).contiguous().numpy()
+        right_cost = from_right.double().transpose(0, 1).contiguous().numpy()
+    total = cost[0].copy()
+    back = np.zeros((length, count, span), dtype=np.int8)
     left, right = np.full((count, span), np.inf), np.full((count, span), np.inf)
     for t in range(1, length):
         left[:, 1:], right[:, :-1] = total[:, :-1], total[:, 1:]
-        arrive_left = left + left_cost[:, t] if moving else left
-        arrive_right = right + right_cost[:, t] if moving else right
-        from_l = arrive_left < total  # strictly: ties keep the path straight
-        best = np.where(from_l, arrive_left, total)
-        from_r = arrive_right < best
-        back[:, t] = np.where(from_r, 2, from_l.astype(np.int8))  # 0: straight, 1: from the left, 2: from the right
-        total = np.where(from_r, arrive_right, best) + cost[:, t]
-    path = np.empty((count, length), dtype=np.int64)
-    path[:, -1] = total.argmin(1)
+        if moving:
+            left += left_cost[t]
+            right += right_cost[t]
+        from_l = left < total  # strictly: ties keep the path straight
+        best = np.where(from_l, left, total)
+        from_r = right < best
+        back[t] = from_l + 2 * from_r - from_l * from_r  # 0: straight, 1: from the left, 2: from the right
+        total = np.where(from_r, right, best) + cost[t]
+    path = np.empty((length, count), dtype=np.int64)
+    path[-1] = total.argmin(1)
     step = np.array([0, -1, 1])
-    rows = np.arange(count)
+    boundary = np.arange(count)
     for t in range(length - 1, 0, -1):
-        path[:, t - 1] = path[:, t] + step[back[rows, t, path[:, t]]]
-    return torch.from_numpy(path)
+        path[t - 1] = path[t] + step[back[t, boundary, path[t]]]
+    return torch.from_numpy(path.T.copy())
 
 
 def _cut_ranges(starts: torch.Tensor, size: int, length: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -686,6 +689,7 @@ def _axis_cuts(
     first: torch.Tensor,  # [B]
     last: torch.Tensor,  # [B]
     rows: int,
+    cut_rows: tuple[int, int],  # the rows that hold matched patches, [start, stop): the others keep ``first``
     length: int,  # of each row
     transpose: bool,
 ) -> torch.Tensor:  # -> [B, rows]: the cut's place in each row
@@ -693,14 +697,16 @@ def _axis_cuts(
     patches' colours are at the two pixels of each pair of neighbours the cut separates, along the row and, where
     the cut moves, across the rows."""
     count = first.numel()
-    if count == 0:
-        return torch.zeros(0, rows, dtype=torch.long)
-    span = int((last - first).max()) + 1
+    cuts = first[:, None].expand(count, rows).clone()
+    start, stop = cut_rows
+    if count == 0 or stop <= start:
+        return cuts
+    span, height = int((last - first).max()) + 1, stop - start
     place = first[:, None] + torch.arange(span)[None]  # [B, S]
     allowed = place <= last[:, None]
-    b = torch.arange(count)[:, None, None].expand(count, rows, span + 1)
-    r = torch.arange(rows)[None, :, None].expand(count, rows, span + 1)
-    p = (first[:, None, None] + torch.arange(-1, span)[None, None]).expand(count, rows, span + 1).clamp(0, length - 1)
+    b = torch.arange(count)[:, None, None].expand(count, height, span + 1)
+    r = torch.arange(start, stop)[None, :, None].expand(count, height, span + 1)
+    p = (first[:, None, None] + torch.arange(-1, span)[None, None]).expand(count, height, span + 1).clamp(0, length - 1)
     a, c = patch_of(b, r, p), patch_of(b + 1, r, p)  # the patches before and after the boundary
     y, x = (p, r) if transpose else (r, p)
     present = (a >= 0) & (c >= 0)
@@ -708,7 +714,8 @@ def _axis_cuts(
     error = torch.where(allowed[:, None, :], apart[:, :, :-1] + apart[:, :, 1:], torch.inf)
     # A cut that moves between rows puts the pixel it passes over on the other side of a seam across the rows.
     crossed = torch.cat([torch.zeros_like(apart[:, :1]), apart[:, :-1] + apart[:, 1:]], 1)  # [B, rows, S + 1]
-    return first[:, None] + cheapest_paths(error, crossed[:, :, :-1], crossed[:, :, 1:])
+    cuts[:, start:stop] = first[:, None] + cheapest_paths(error, crossed[:, :, :-1], crossed[:, :, 1:])
+    return cuts
 
 
 def seam_cut(matched: _Matches) -> torch.Tensor:  # -> [h, w] kept patch, -1: none
@@ -724,12 +731,22 @@ def seam_cut(matched: _Matches) -> torch.Tensor:  # -> [h, w] kept patch, -1: no
     slot[matched.kept] = torch.arange(int(matched.kept.sum()))
     nx = matched.xs.numel()
     colors = _PatchColors(matched)
+    grid = torch.nonzero(matched.kept)[:, 0]
+    tops, lefts = matched.ys[grid // nx], matched.xs[grid % nx]
+    if grid.numel() == 0:
+        return torch.full((h, w), -1, dtype=torch.long)
+    rows = (int(tops.min()), int(tops.max()) + matched.size)  # no cut matters outside the matched patches
+    columns = (int(lefts.min()), int(lefts.max()) + matched.size)
     grid_row = _nearest_centre(matched.ys, matched.size, h)  # [h]
     first, last = _cut_ranges(matched.xs, matched.size, w)
-    column_cuts = _axis_cuts(colors, lambda b, r, p: slot[grid_row[r] * nx + b], first, last, h, w, transpose=False)
+    column_cuts = _axis_cuts(
+        colors, lambda b, r, p: slot[grid_row[r] * nx + b], first, last, h, rows, w, transpose=False
+    )
     grid_col = torch.searchsorted(column_cuts.T.contiguous(), torch.arange(w).expand(h, w).contiguous(), right=True)
     first, last = _cut_ranges(matched.ys, matched.size, h)
-    row_cuts = _axis_cuts(colors, lambda b, r, p: slot[b * nx + grid_col[p, r]], first, last, w, h, transpose=True)
+    row_cuts = _axis_cuts(
+        colors, lambda b, r, p: slot[b * nx + grid_col[p, r]], first, last, w, columns, h, transpose=True
+    )
     grid_row = torch.searchsorted(row_cuts.T.contiguous(), torch.arange(h).expand(w, h).contiguous(), right=True).T
     return slot[grid_row * nx + grid_col]
 
