@@ -109,6 +109,15 @@ def test_the_seam_between_two_patches_runs_where_their_colours_agree_not_on_a_st
     assert torch.equal(labels, expected)
 
 
+def assert_each_pixel_takes_a_patch_covering_it(labels, kept, ys, xs, size) -> torch.Tensor:  # -> [h, w] chosen
+    grid = torch.nonzero(kept)[:, 0][labels.clamp_min(0)]
+    top, left = ys[grid // xs.numel()], xs[grid % xs.numel()]
+    y, x = torch.meshgrid(torch.arange(labels.shape[0]), torch.arange(labels.shape[1]), indexing="ij")
+    chosen = labels >= 0
+    assert bool(((top <= y) & (y < top + size) & (left <= x) & (x < left + size))[chosen].all())
+    return chosen
+
+
 def test_the_cut_gives_every_pixel_a_kept_patch_that_covers_it_on_any_grid():
     g = torch.Generator().manual_seed(5)
     for _ in range(60):
@@ -122,12 +131,7 @@ def test_the_cut_gives_every_pixel_a_kept_patch_that_covers_it_on_any_grid():
         corners = rows * source_w + torch.randint(0, source_w - size + 1, rows.shape, generator=g)
         source = torch.rand(3, 2 * source_h * source_w, generator=g)
         matched = _Matches(0, size, ys, xs, kept, corners, source_w, source, torch.rand(3, h, w, generator=g))
-        labels = seam_cut(matched)
-        grid = torch.nonzero(kept)[:, 0][labels.clamp_min(0)]
-        top, left = ys[grid // xs.numel()], xs[grid % xs.numel()]
-        y, x = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
-        chosen = labels >= 0
-        assert bool(((top <= y) & (y < top + size) & (left <= x) & (x < left + size))[chosen].all())
+        chosen = assert_each_pixel_takes_a_patch_covering_it(seam_cut(matched), kept, ys, xs, size)
         if bool(kept.all()):
             assert bool(chosen.all())
 
@@ -142,12 +146,9 @@ def test_every_pixel_takes_a_kept_patch_that_covers_it_and_the_cut_seams_cost_le
     matched = backend._matched
     labels = seam_cut(matched)
     kept = torch.nonzero(matched.kept)[:, 0]
-    y, x = torch.meshgrid(torch.arange(56), torch.arange(72), indexing="ij")
-    grid = kept[labels.clamp_min(0)]
-    top, left = matched.ys[grid // matched.xs.numel()], matched.xs[grid % matched.xs.numel()]
-    chosen = labels >= 0
+    chosen = assert_each_pixel_takes_a_patch_covering_it(labels, matched.kept, matched.ys, matched.xs, 13)
     assert bool(chosen[:, 24:].all()) and not bool(chosen[:, :4].any())
-    assert bool(((top <= y) & (y < top + 13) & (left <= x) & (x < left + 13))[chosen].all())
+    y, x = torch.meshgrid(torch.arange(56), torch.arange(72), indexing="ij")
 
     colors = _PatchColors(matched)
 
