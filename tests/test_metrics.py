@@ -11,6 +11,7 @@ import torch
 from messages import names
 
 from dresg_addon.evaluation import metrics
+from dresg_addon.method.style_distance import sort_rows
 from dresg_addon.raster import render_scene
 from dresg_addon.scene.camera import Camera, look_at
 from dresg_addon.scene.demo import demo_cameras, demo_scene
@@ -42,6 +43,16 @@ def test_sliced_wasserstein_unequal_counts_matches_quantiles():
     y = ((torch.arange(1000, dtype=F64) + 0.5) / 1000)[:, None]
     assert float(metrics.sliced_wasserstein(x, y)) < 2e-3
     assert float(metrics.sliced_wasserstein(x, y + 0.2)) == pytest.approx(0.2, abs=2e-3)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_rows_sorted_as_torch_sorts_them_infinities_and_nan_included(dtype):
+    values = torch.randn(5, 301, generator=torch.Generator().manual_seed(0), dtype=dtype)
+    values[0, :3] = torch.tensor([math.inf, -math.inf, math.nan], dtype=dtype)
+    values[1] = 0.25  # all ties
+    expected = torch.sort(values, dim=1).values
+    assert torch.equal(sort_rows(values).nan_to_num(7.0), expected.nan_to_num(7.0))
+    assert sort_rows(values).dtype == dtype
 
 
 def test_sliced_wasserstein_rejects_bad_shapes():

@@ -53,6 +53,26 @@ def test_a_merged_map_draws_the_same_image_as_its_members_painted_their_cells_co
     assert bool((pixel[1:] >= pixel[:-1]).all()) and int(gauss.max()) < 40
 
 
+def test_a_map_merged_where_only_some_columns_are_shared_sums_exactly_their_samples():
+    scene, camera = mixed_scene(), cameras()[0]
+    tensors = geometry_tensors(scene)
+    # The fine splats two by two into one column each, the wide ones each their own: most samples stay alone.
+    column = torch.arange(len(scene)) // 2
+    column[FINE:] = torch.arange(FINE // 2, FINE // 2 + len(scene) - FINE)
+    count = int(column.max()) + 1
+    colors = torch.rand(count, 3, generator=torch.Generator().manual_seed(3))
+    whole = ColorOnlyRenderer(*tensors, camera)
+    pixel, gauss, weight = whole.contributions()
+    pairs = torch.unique(pixel * count + column[gauss]).numel()  # distinct (pixel, column): the merged samples
+    merged = ColorOnlyRenderer(*tensors, camera).merge_columns(column, count)
+    assert merged.map.nnz == pairs < whole.map.nnz
+    assert torch.allclose(merged(colors), whole(colors[column]), atol=1e-6)
+    assert torch.equal(merged.seen, torch.zeros(count, dtype=torch.bool).index_fill_(0, column[gauss], True))
+    merged_pixel, merged_column, _ = merged.contributions()
+    assert bool((merged_pixel[1:] >= merged_pixel[:-1]).all())
+    assert torch.unique(merged_pixel * count + merged_column).numel() == pairs  # no (pixel, column) twice
+
+
 def test_fine_splats_share_cells_and_wide_ones_keep_their_own_column():
     scene, views = mixed_scene(), cameras()
     tensors = geometry_tensors(scene)

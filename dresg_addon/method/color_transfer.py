@@ -16,6 +16,7 @@ import torch
 
 from ..scene.gaussians import SH_C0, GaussianScene
 from ..util.errors import CameraError, ImageError, NumericalError
+from .style_distance import empirical_quantiles, sort_rows
 
 LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709
 EIGEN_FLOOR = 1e-6  # variance floor (std 1e-3, a quarter of an 8-bit level) for the inverse root
@@ -153,7 +154,7 @@ class StyleQuantiles:
         mean, cov = color_moments(style_pixels)
         axes = torch.linalg.eigh((cov + cov.T) / 2.0).eigenvectors
         projected = (style_pixels.to(torch.float64) - mean) @ axes
-        return cls(mean, axes, torch.sort(projected.T.contiguous(), dim=1).values)
+        return cls(mean, axes, sort_rows(projected.T.contiguous()))
 
 
 def match_color_histograms(pixels: torch.Tensor, style: torch.Tensor | StyleQuantiles) -> torch.Tensor:  # [M, 3]
@@ -172,8 +173,6 @@ def match_color_histograms(pixels: torch.Tensor, style: torch.Tensor | StyleQuan
     if pixels.shape[0] == 0:
         return pixels.clone()
     quantiles = style if isinstance(style, StyleQuantiles) else StyleQuantiles.of(style)
-    from .style_distance import empirical_quantiles
-
     x = (pixels.to(torch.float64) - quantiles.mean) @ quantiles.axes
     ranked = empirical_quantiles(quantiles.sorted, x.shape[0]).T  # [M, 3], per axis, by rank
     order = torch.sort(x, dim=0, stable=True).indices  # [M, 3]

@@ -10,6 +10,7 @@ covered; an image whose mask covers nothing is measured as if unmasked.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -86,9 +87,17 @@ def empirical_quantiles(sorted_values: torch.Tensor, k: int) -> torch.Tensor:  #
     return sorted_values[:, lo] * (1.0 - w) + sorted_values[:, hi] * w
 
 
+def sort_rows(values: torch.Tensor) -> torch.Tensor:  # [P, n] -> [P, n], each row increasing
+    """``torch.sort(values, dim=1).values``; on the CPU without autograd numpy's sort, whose SIMD quicksort is 5-7x
+    faster for floats (128 rows of 16384 float32: 19 ms against 134 ms on an Intel Xeon)."""
+    if values.device.type != "cpu" or values.requires_grad:
+        return torch.sort(values, dim=1).values
+    return torch.from_numpy(np.sort(values.numpy(), axis=1))
+
+
 def sorted_projections(samples: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:  # [n, D], [D, P] -> [P, n]
     """The samples projected on each direction, sorted: each row is a 1D empirical distribution."""
-    return torch.sort((samples.to(directions.dtype) @ directions).T.contiguous(), dim=1).values
+    return sort_rows((samples.to(directions.dtype) @ directions).T.contiguous())
 
 
 def sliced_wasserstein_sorted(px: torch.Tensor, py: torch.Tensor, chunk: int = 32) -> torch.Tensor:

@@ -689,14 +689,23 @@ class ColorOnlyRenderer:
         pixel summed with those of the others there. The image of colours c is then exactly that of the Gaussians
         each painted c[column[i]]; the samples stay sorted by pixel."""
         pixel, gauss, weight = self.map.samples()
-        keys, inverse = torch.unique(pixel * count + column[gauss], sorted=True, return_inverse=True)
-        del pixel, gauss
-        weight = torch.zeros(keys.numel(), dtype=weight.dtype).index_add_(0, inverse, weight)
-        del inverse
-        gauss = keys % count
-        self.seen = torch.zeros(count, dtype=torch.bool, device=keys.device)
+        gauss = column[gauss]
+        # Only samples of shared columns can meet another of their column at a pixel: the key sort runs on those
+        # alone (a few % of the samples on the bonsai), each one's duplicates summed into its first sample.
+        members = torch.bincount(column, minlength=count)
+        shared = torch.nonzero(members[gauss] > 1).squeeze(-1)
+        keys, inverse = torch.unique(pixel[shared] * count + gauss[shared], return_inverse=True)
+        n_keys, device = keys.numel(), gauss.device
+        first = torch.full((n_keys,), shared.numel(), dtype=torch.long, device=device)
+        first = shared[first.scatter_reduce_(0, inverse, torch.arange(shared.numel(), device=device), "amin")]
+        weight = weight.clone()
+        weight[first] = torch.zeros(n_keys, dtype=weight.dtype, device=device).index_add_(0, inverse, weight[shared])
+        keep = torch.ones(gauss.numel(), dtype=torch.bool, device=device)
+        keep[shared] = False
+        keep[first] = True
+        self.seen = torch.zeros(count, dtype=torch.bool, device=device)
         self.seen[gauss] = True
-        self.map = SparseColorMap.from_samples(keys // count, gauss, weight, self.map.shape[0], count)
+        self.map = SparseColorMap.from_samples(pixel[keep], gauss[keep], weight[keep], self.map.shape[0], count)
         return self
 
     def contributions(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
