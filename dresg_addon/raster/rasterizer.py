@@ -703,9 +703,11 @@ class ColorOnlyRenderer:
         keep = torch.ones(gauss.numel(), dtype=torch.bool, device=device)
         keep[shared] = False
         keep[first] = True
+        keep = torch.nonzero(keep).squeeze(-1)  # one nonzero for the three gathers below
         self.seen = torch.zeros(count, dtype=torch.bool, device=device)
         self.seen[gauss] = True
-        self.map = SparseColorMap.from_samples(pixel[keep], gauss[keep], weight[keep], self.map.shape[0], count)
+        pixel, gauss, weight = pixel.index_select(0, keep), gauss.index_select(0, keep), weight.index_select(0, keep)
+        self.map = SparseColorMap.from_samples(pixel, gauss, weight, self.map.shape[0], count)
         return self
 
     def contributions(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
