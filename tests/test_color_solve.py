@@ -10,7 +10,13 @@ import pytest
 import torch
 from test_pipeline import away_camera, ring_cameras, sphere_scene
 
-from dresg_addon.method.color_solve import ColorSolveSettings, LinearViews, projected_solve, solve_colors
+from dresg_addon.method.color_solve import (
+    ColorSolveSettings,
+    LinearViews,
+    covered_rmse,
+    projected_solve,
+    solve_colors,
+)
 from dresg_addon.method.medium import Ink
 from dresg_addon.raster import ColorOnlyRenderer, geometry_tensors
 from dresg_addon.scene.gaussians import GaussianScene
@@ -102,6 +108,25 @@ def test_the_objective_never_rises_and_the_solve_stops_at_its_tolerance(small):
     assert len(values) - 1 < settings.max_rounds  # stopped by the tolerance, not the cap
     assert values[-2] - values[-1] <= settings.tolerance * values[-1]
     assert values[-1] == pytest.approx(objective(views, result.colors, targets), rel=1e-5)
+
+
+def test_each_round_gets_its_colours_residuals_and_their_covered_rmse_is_the_renders(small):
+    _, views = small
+    rng = np.random.default_rng(4)
+    targets = [torch.from_numpy(rng.uniform(0, 1, (t.shape[0], 3)).astype(np.float32)) for t in views.constants]
+    covered = [coverage[:, 0] > 0.5 for coverage in views.coverages]
+    seen = []
+
+    def each_round(index, value, colors, residuals):
+        images = views.images(colors)
+        for image, target, residual in zip(images, targets, residuals):
+            assert torch.allclose(residual, image - target, atol=1e-5)
+        masked = torch.cat([(image - target)[mask] for image, target, mask in zip(images, targets, covered)])
+        seen.append((covered_rmse(residuals, covered), float(masked.double().square().mean().sqrt())))
+
+    solve_colors(views, targets, torch.full((80, 3), 0.5), ColorSolveSettings(max_rounds=3), each_round)
+    assert seen and all(ours == pytest.approx(truth, rel=1e-5) for ours, truth in seen)
+    assert covered_rmse(residuals=[torch.ones(4, 3)], covered=[torch.zeros(4, dtype=torch.bool)]) == 0.0
 
 
 def test_more_iterations_fit_closer(small):

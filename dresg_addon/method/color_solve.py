@@ -223,7 +223,8 @@ def projected_solve(
     targets: Sequence[torch.Tensor],  # V x [P, 3]
     start: torch.Tensor,  # [N, 3]: the warm start
     settings: ColorSolveSettings,
-    each_round: Callable[[int, float, torch.Tensor], None] | None = None,  # (round, objective, colours) after each
+    # (round, objective, colours, their residuals W_v c + b_v - t_v: V x [P, 3]) after each
+    each_round: Callable[[int, float, torch.Tensor, list[torch.Tensor]], None] | None = None,
 ) -> ColorSolveResult:
     """min f(c) (+ the anchor term toward ``start``) over c in [0, 1]^(N x 3) by projected Newton-CG rounds
     (module docstring)."""
@@ -258,10 +259,20 @@ def projected_solve(
         x, value, residuals = candidate, candidate_value, candidate_residuals
         objectives.append(value)
         if each_round is not None:
-            each_round(round_index, value, x)
+            each_round(round_index, value, x, residuals)
         if drop <= settings.tolerance * max(value, 1e-30):
             break
     return ColorSolveResult(x, total, objectives)
+
+
+def covered_rmse(residuals: Sequence[torch.Tensor], covered: Sequence[torch.Tensor]) -> float:
+    """The RMSE of residuals (V x [P, 3]) over the covered pixels (V x [P] bool) of all views together, summed in
+    float64; 0 when no pixel is covered."""
+    total, count = 0.0, 0
+    for residual, mask in zip(residuals, covered):
+        total += float(torch.where(mask[:, None], residual, 0.0).square().sum(dtype=torch.float64))
+        count += 3 * int(mask.sum())
+    return math.sqrt(total / count) if count else 0.0
 
 
 def _covered_rmse(image: torch.Tensor, target: torch.Tensor, alpha: torch.Tensor, covered: float) -> float:
@@ -505,7 +516,7 @@ def solve_colors(
     targets: Sequence[torch.Tensor],  # V x [3, H, W] (or [P, 3])
     start: torch.Tensor,  # [N, 3]
     settings: ColorSolveSettings = ColorSolveSettings(),
-    each_round: Callable[[int, float, torch.Tensor], None] | None = None,  # (round, objective, colours) after each
+    each_round: Callable[[int, float, torch.Tensor, list[torch.Tensor]], None] | None = None,  # as projected_solve's
     pick: Callable | None = None,  # (views, targets [P, 3], joint) -> [N, 3]: each splat's colour from the views
 ) -> ColorSolveResult:
     """The fitted colours in [0, 1]: bounded least squares over all views, anchored to ``start`` when
