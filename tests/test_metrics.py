@@ -45,7 +45,7 @@ def test_sliced_wasserstein_unequal_counts_matches_quantiles():
     assert float(metrics.sliced_wasserstein(x, y + 0.2)) == pytest.approx(0.2, abs=2e-3)
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("dtype", [torch.float32, F64, torch.bfloat16])
 def test_rows_sorted_as_torch_sorts_them_infinities_and_nan_included(dtype):
     values = torch.randn(5, 301, generator=torch.Generator().manual_seed(0), dtype=dtype)
     values[0, :3] = torch.tensor([math.inf, -math.inf, math.nan], dtype=dtype)
