@@ -4,9 +4,8 @@ ground.
     .venv/bin/python bench/planar_marks.py                     # the shared paintings and the demo's, about 9 min
     .venv/bin/python bench/planar_marks.py --styles the_scream --quick
 
-The painting is laid on the ground plane by a planar map (the painting at the evaluation's scale, the view's size x
-Stroke Size, one painting pixel to a screen pixel across the ground's centre in novel view 3; mirrored past its
-edges), and the demo's splats are coloured two ways: each ground splat the painting at its centre (the objects as
+The painting is laid on the ground plane by a planar map (the painting at the view's width x Stroke Size, its aspect
+kept, one painting pixel to a screen pixel across the ground's centre in novel view 3; mirrored past its edges), and the demo's splats are coloured two ways: each ground splat the painting at its centre (the objects as
 they are), and every splat's colour solved over the 16 training views to draw the flat painting where they see the
 ground and the scene as it is elsewhere (what a colour fit to perfectly consistent targets draws). The quality
 bench's 16 novel views then measure each as they measure a stylization. The marks are the painting's own and the
@@ -105,7 +104,7 @@ def fitted_ground(scene: GaussianScene, painting: np.ndarray, cameras, camera: C
     tensors = geometry_tensors(scene)
     renderers = [ColorOnlyRenderer(*tensors, c) for c in cameras]
     views = LinearViews([r.linear_map() for r in renderers], [r.background for r in renderers])
-    start = torch.from_numpy(np.clip(0.5 + SH_C0 * scene.sh_dc, 0.0, 1.0)).float()
+    start = torch.from_numpy(np.minimum(scene.base_colors, 1.0)).float()
     colors = solve_colors(views, targets, start, ColorSolveSettings(max_rounds=12)).colors.numpy()
     return replace(scene, sh_dc=((colors - 0.5) / SH_C0).astype(np.float32))
 
